@@ -1,0 +1,1 @@
+"""Readers and writers: meshes, CT volumes, STEP/IGES, staged output folders."""

@@ -1,0 +1,1 @@
+"""Mesh intake: reading, cleanup, bodies, units, the tibia's own body."""
