@@ -140,9 +140,21 @@ def load_bone(
     Raises InputError (naming the file) for unreadable files, wrong units, a
     tibia broken into pieces, or a bone that is not long enough to be whole.
     """
-    config = config or load_config()
-    path = Path(path)
     vertices, faces = read_mesh_file(path)
+    return prepare_bone(vertices, faces, source=path, units=units, config=config)
+
+
+def prepare_bone(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    source: str | Path = "",
+    units: Units = "auto",
+    config: dict | None = None,
+) -> BoneMesh:
+    """Clean raw mesh arrays and keep the tibia body (see ``load_bone``); ``source`` names them in errors."""
+    config = config or load_config()
+    path = Path(source) if source else None
     mesh_cfg = config["mesh"]
     vertices, faces, repairs = _clean(vertices, faces, int(mesh_cfg["max_hole_edges"]))
     bodies = _bodies(vertices, faces)
@@ -201,7 +213,7 @@ def load_bone(
     return BoneMesh(
         vertices=np.asarray(tibia.vertices, dtype=np.float64) * scale,
         faces=np.asarray(tibia.faces, dtype=np.int64),
-        source=str(path),
+        source=str(source),
         units="mm",
         bodies=tuple(infos),
         repairs=tuple(repairs),

@@ -1,0 +1,94 @@
+"""The embedded phantom: a synthetic right tibia built from a few morphometric parameters.
+
+The bone is the zero level set of a smooth implicit function (a tube whose
+cross-section flares from the shaft into the plateau and the plafond, a
+tibial tuberosity, a medial malleolus and an anterior crest), meshed by
+marching cubes. It is plausible enough for every stage to run on it, and its
+parameters are the ones a surgeon measures on an X-ray or CT.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..mesh.bone_mesh import BoneMesh
+from ..mesh.intake import prepare_bone
+
+
+@dataclass(frozen=True)
+class TibiaParameters:
+    """Morphometric parameters of the phantom tibia (mm), right leg, bone coordinates."""
+
+    length_mm: float = 360.0
+    plateau_width_mm: float = 76.0  # medial-lateral
+    plateau_depth_mm: float = 50.0  # anterior-posterior
+    plateau_posterior_offset_mm: float = 7.0  # plateau overhangs the shaft posteriorly
+    shaft_width_mm: float = 24.0  # medial-lateral at mid-shaft
+    shaft_depth_mm: float = 27.0  # anterior-posterior at mid-shaft
+    distal_width_mm: float = 50.0
+    distal_depth_mm: float = 40.0
+    malleolus_length_mm: float = 14.0  # how far the medial malleolus reaches below the plafond
+    tuberosity_height_mm: float = 9.0  # anterior prominence
+    voxel_mm: float = 1.0  # marching-cubes resolution
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _smooth_min(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
+    h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+    return b * (1.0 - h) + a * h - k * h * (1.0 - h)
+
+
+def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> np.ndarray:
+    """Approximate signed distance (mm, negative inside) of the phantom at bone coordinates."""
+    L = p.length_mm
+    top = _smoothstep((z - 0.70 * L) / (0.26 * L))  # 0 in the shaft, 1 at the plateau
+    bottom = _smoothstep((0.16 * L - z) / (0.14 * L))  # 1 at the plafond
+    half_w = 0.5 * (p.shaft_width_mm + top * (p.plateau_width_mm - p.shaft_width_mm) + bottom * (p.distal_width_mm - p.shaft_width_mm))
+    half_d = 0.5 * (p.shaft_depth_mm + top * (p.plateau_depth_mm - p.shaft_depth_mm) + bottom * (p.distal_depth_mm - p.shaft_depth_mm))
+    cy = -p.plateau_posterior_offset_mm * top**2  # the plateau sits posterior to the shaft
+    dx, dy = x, y - cy
+    theta = np.arctan2(dy, dx)
+    # Anterior crest in the shaft: a sharper anterior border (triangular section).
+    crest = 1.0 + 0.22 * (1.0 - top) * (1.0 - bottom) * np.clip(np.sin(theta), 0.0, None) ** 6
+    # Posterior intercondylar notch on the plateau.
+    notch = 1.0 - 0.10 * top**4 * np.exp(-(((theta + 0.5 * np.pi) / 0.35) ** 2))
+    rho = np.sqrt((dx / half_w) ** 2 + (dy / half_d) ** 2)
+    radius = np.sqrt(half_w * half_d)
+    body = (rho / (crest * notch) - 1.0) * radius
+    # Ends: the plateau and the plafond, rounded into the sides.
+    body = -_smooth_min(-body, -np.maximum(z - L, -z), 3.0)
+    # Tibial tuberosity: an ellipsoid on the anterior proximal shaft.
+    tz = L - 0.11 * L
+    tub = np.sqrt(((x - 0.1 * p.plateau_width_mm) / 14.0) ** 2 + ((y - (0.5 * p.shaft_depth_mm + 0.2 * p.tuberosity_height_mm)) / p.tuberosity_height_mm) ** 2 + ((z - tz) / 22.0) ** 2) - 1.0
+    body = _smooth_min(body, tub * 10.0, 4.0)
+    # Medial malleolus: medial (-x for a right tibia), reaching below the plafond.
+    mal = np.sqrt(((x + 0.5 * p.distal_width_mm - 7.0) / 8.0) ** 2 + ((y - 2.0) / 11.0) ** 2 + ((z - 4.0) / (p.malleolus_length_mm + 4.0)) ** 2) - 1.0
+    body = _smooth_min(body, mal * 9.0, 4.0)
+    return body
+
+
+def phantom_tibia(params: TibiaParameters | None = None) -> BoneMesh:
+    """A closed triangle mesh of the phantom (a right tibia in bone coordinates, mm)."""
+    from skimage.measure import marching_cubes
+    import trimesh
+
+    p = params or TibiaParameters()
+    h = p.voxel_mm
+    margin = 3.0 * h
+    half = 0.5 * max(p.plateau_width_mm, p.distal_width_mm) + 10.0
+    xs = np.arange(-half - margin, half + margin, h)
+    ys = np.arange(-p.plateau_depth_mm - margin, p.plateau_depth_mm + margin, h)
+    zs = np.arange(-p.malleolus_length_mm - 10.0, p.length_mm + margin, h)
+    X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
+    field = _field(X, Y, Z, p).astype(np.float32)
+    verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(h, h, h))
+    verts += np.array([xs[0], ys[0], zs[0]])
+    mesh = trimesh.Trimesh(verts, faces, process=True)
+    trimesh.smoothing.filter_taubin(mesh, iterations=10)
+    source = "phantom:" + ",".join(f"{k}={v:g}" for k, v in asdict(p).items())
+    return prepare_bone(mesh.vertices, mesh.faces, source=source, units="mm")
