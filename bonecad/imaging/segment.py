@@ -1,0 +1,407 @@
+"""CT volume -> the tibia's surface mesh (LPS world mm).
+
+Steps: a Hounsfield threshold half-way between cortical bone and soft tissue;
+connected bodies; the tibia chosen by shape (the long body; a fibula lies
+beside it, femur and talus in series with it); morphological closing and the
+marrow cavity filled; marching cubes on the grey values (sub-voxel surface) in
+index space, mapped to world by the affine; Taubin smoothing (no shrinkage);
+optional quadric decimation.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from ..errors import InputError
+from ..io.volume import CTVolume
+from ..mesh.bone_mesh import BodyInfo, BoneMesh
+
+log = logging.getLogger("bonecad")
+
+# Voxels above this are bone for the automatic level's cortical estimate; the
+# surface level is clamped to [_LEVEL_MIN, _LEVEL_MAX] HU.
+_CORTICAL_MIN_HU = 600.0
+_LEVEL_MIN, _LEVEL_MAX = 350.0, 1000.0
+# Bodies below this share of the largest body's volume are fragments (specks,
+# calcifications); long bodies are at least this share of the longest.
+_FRAGMENT_SHARE = 0.02
+_LONG_SHARE = 0.5
+# Two bodies lie side by side when their spans along the limb overlap by this
+# share of the shorter span (the fibula beside the tibia).
+_BESIDE_OVERLAP = 0.5
+# Touching bones are split by eroding the filled body up to this depth (mm);
+# a split counts when at least two parts hold this share of the eroded voxels
+# and reach this share of the body's length (the fibula: ~15 % of the volume,
+# ~95 % of the length; knobs cut off by the erosion are short).
+_SPLIT_ERODE_MM = 3.0
+_SPLIT_PART_SHARE = 0.03
+_SPLIT_LENGTH_SHARE = 0.4
+
+
+@dataclass(frozen=True)
+class _Body:
+    label: int
+    voxels: int
+    volume_mm3: float
+    centroid: np.ndarray  # (3,) LPS mm
+    axis: np.ndarray  # (3,) unit principal direction
+    length_mm: float
+    slices: tuple  # bounding box in the cropped array
+
+
+def surface_level(volume: CTVolume) -> float:
+    """Automatic bone surface level, HU: half-way between cortical bone and soft tissue."""
+    hu = volume.hu[::2, ::2, ::2]
+    bone = hu[hu > _CORTICAL_MIN_HU]
+    if bone.size == 0:
+        raise InputError(f"no bone found: no voxel above {_CORTICAL_MIN_HU:.0f} HU", volume.source or None)
+    cortical = float(np.percentile(bone, 75))
+    soft = hu[(hu > -200) & (hu < 200)]
+    tissue = float(np.median(soft)) if soft.size else 0.0
+    return float(np.clip(0.5 * (cortical + tissue), _LEVEL_MIN, _LEVEL_MAX))
+
+
+def segment_bone(
+    volume: CTVolume,
+    *,
+    level_hu: float | None = None,
+    smoothing_iterations: int = 10,
+    target_faces: int | None = None,
+) -> BoneMesh:
+    """The tibia's closed outer surface from a CT volume.
+
+    level_hu : bone surface level, HU (None: half-way between the volume's
+        cortical bone and soft tissue, clamped to 350-1000 HU)
+    smoothing_iterations : Taubin iterations (lambda 0.5, mu -0.53); 0 for none
+    target_faces : decimate to about this many triangles (None: keep all)
+
+    Returns a BoneMesh in LPS world mm, normals outward. Raises InputError when
+    no bone is found, when the tibia cannot be told apart, or when the tibia
+    reaches the border of the volume (the volume holds only part of it).
+    """
+    path = volume.source or None
+    level = surface_level(volume) if level_hu is None else float(level_hu)
+    mask = volume.hu >= level
+    box = _bounding_box(mask)
+    if box is None:
+        raise InputError(f"no bone found: no voxel above {level:.0f} HU", path)
+    mask = mask[box]
+    offset = np.array([s.start for s in box])  # (k, j, i)
+    labels, count = ndimage.label(mask)
+    bodies = _bodies(labels, count, offset, volume)
+    if _split_touching(labels, count, bodies, volume):
+        bodies = _bodies(labels, int(labels.max()), offset, volume)
+    tibia, roles = _pick_tibia(bodies, path)
+    _check_whole(tibia, offset, volume, path)
+
+    # The tibia's own mask, padded by 2 voxels, closed and filled.
+    sub = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in tibia.slices)
+    own = labels[sub] == tibia.label
+    other = np.pad((labels[sub] != tibia.label) & (labels[sub] > 0), 2)
+    del labels, mask
+    sub_offset = offset + np.array([s.start for s in sub])
+    own = np.pad(own, 2)
+    own = ndimage.binary_closing(own, structure=ndimage.generate_binary_structure(3, 1), iterations=1)
+    own = _fill_holes(own)
+    own = _fill_cross_sections(own, tibia.axis, volume)
+
+    # Grey values for marching cubes: the interior lifted above the level (marrow
+    # filled), everything away from the tibia pushed below it (no fibula).
+    field = np.full(own.shape, level - 1000.0, dtype=np.float32)
+    source = tuple(slice(o - 2, o - 2 + n) for o, n in zip(sub_offset, own.shape))
+    clipped = tuple(slice(max(s.start, 0), min(s.stop, n)) for s, n in zip(source, volume.shape))
+    dest = tuple(slice(c.start - s.start, c.stop - s.start) for c, s in zip(clipped, source))
+    field[dest] = volume.hu[clipped]
+    interior = ndimage.binary_erosion(own)
+    field[interior] = np.maximum(field[interior], level + 500.0)
+    near = ndimage.binary_dilation(own, iterations=2)
+    field[~near] = np.minimum(field[~near], level - 500.0)
+    # Voxels of a touching bone (split off from the tibia) stay outside.
+    cut = other & ~own
+    field[cut] = np.minimum(field[cut], level - 500.0)
+    field[[0, -1], :, :] = field[:, [0, -1], :] = field[:, :, [0, -1]] = level - 1000.0
+    del interior, near, own, other, cut
+
+    mesh = _surface(field, level, sub_offset - 2, volume)
+    del field
+    mesh = _largest_part(mesh)
+    if smoothing_iterations > 0:
+        import trimesh
+
+        trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=smoothing_iterations)
+    if target_faces is not None and len(mesh.faces) > target_faces:
+        mesh = _decimate(mesh, target_faces)
+    if mesh.volume < 0:
+        mesh.invert()
+    infos = tuple(
+        BodyInfo(
+            triangles=len(mesh.faces) if b is tibia else 0,
+            volume_mm3=b.volume_mm3,
+            length_mm=b.length_mm,
+            centroid=b.centroid,
+            role=roles[b.label],
+        )
+        for b in bodies
+    )
+    return BoneMesh(
+        vertices=np.asarray(mesh.vertices, dtype=np.float64),
+        faces=np.asarray(mesh.faces, dtype=np.int64),
+        source=volume.source,
+        bodies=infos,
+        watertight=bool(mesh.is_watertight),
+        extra={"level_hu": level, "voxel_mm": volume.spacing_mm.tolist()},
+    )
+
+
+def _bounding_box(mask: np.ndarray) -> tuple[slice, ...] | None:
+    spans = []
+    for axis in range(3):
+        other = tuple(a for a in range(3) if a != axis)
+        hit = np.flatnonzero(mask.any(axis=other))
+        if hit.size == 0:
+            return None
+        spans.append(slice(int(hit[0]), int(hit[-1]) + 1))
+    return tuple(spans)
+
+
+def _bodies(labels: np.ndarray, count: int, offset: np.ndarray, volume: CTVolume) -> list[_Body]:
+    """Size, centroid, principal axis and length (mm) of each labelled body above the fragment share."""
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    sizes[0] = 0
+    if count == 0:
+        return []
+    voxel_mm3 = abs(np.linalg.det(volume.affine[:3, :3]))
+    keep = np.flatnonzero(sizes >= _FRAGMENT_SHARE * sizes.max())
+    boxes = ndimage.find_objects(labels)
+    bodies = []
+    for label in keep:
+        box = boxes[label - 1]
+        step = max(1, int(round((sizes[label] / 2e5) ** (1 / 3))))
+        part = labels[tuple(slice(s.start, s.stop, step) for s in box)] == label
+        kji = np.argwhere(part) * step + np.array([s.start for s in box]) + offset
+        xyz = volume.index_to_world(kji[:, ::-1])
+        centroid = xyz.mean(axis=0)
+        _, _, vt = np.linalg.svd(xyz - centroid, full_matrices=False)
+        along = (xyz - centroid) @ vt[0]
+        bodies.append(
+            _Body(
+                label=int(label),
+                voxels=int(sizes[label]),
+                volume_mm3=float(sizes[label] * voxel_mm3),
+                centroid=centroid,
+                axis=vt[0],
+                length_mm=float(along.max() - along.min()),
+                slices=box,
+            )
+        )
+    return bodies
+
+
+def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str]]:
+    """The tibia among the bodies, and a role for every body.
+
+    Long bodies are those at least half as long as the longest. A long body
+    lying beside a bulkier one (spans along the limb overlapping) is a fibula.
+    Of the remaining long bones in series (femur, tibia), the tibia is the one
+    with a fibula beside it, else the one with bodies on both sides (femur
+    above, talus below).
+    """
+    if not bodies:
+        raise InputError("no bone found", path)
+    roles = {b.label: "fragment" for b in bodies}
+    longest = max(b.length_mm for b in bodies)
+    biggest = max(bodies, key=lambda b: b.volume_mm3)
+    limb = biggest.axis
+
+    def span(b: _Body) -> tuple[float, float]:
+        centre = b.centroid @ limb
+        half = 0.5 * b.length_mm * abs(b.axis @ limb)
+        return centre - half, centre + half
+
+    def overlap(a: _Body, b: _Body) -> float:
+        (a0, a1), (b0, b1) = span(a), span(b)
+        shorter = min(a1 - a0, b1 - b0)
+        return max(0.0, min(a1, b1) - max(a0, b0)) / shorter if shorter > 0 else 0.0
+
+    long = [b for b in bodies if b.length_mm >= _LONG_SHARE * longest]
+    fibulae = {
+        b.label: a.label
+        for b in long
+        for a in long
+        if a is not b and a.volume_mm3 > b.volume_mm3 and overlap(a, b) >= _BESIDE_OVERLAP
+    }
+    main = [b for b in long if b.label not in fibulae]
+    for label in fibulae:
+        roles[label] = "fibula"
+    candidates = main
+    if len(candidates) > 1:
+        with_fibula = [b for b in candidates if b.label in fibulae.values()]
+        if with_fibula:
+            candidates = with_fibula
+    if len(candidates) > 1:
+        between = []
+        for b in candidates:
+            lo, hi = span(b)
+            others = [(o.centroid @ limb) for o in bodies if o is not b and overlap(o, b) < _BESIDE_OVERLAP]
+            if any(c < lo for c in others) and any(c > hi for c in others):
+                between.append(b)
+        if len(between) == 1:
+            candidates = between
+    if len(candidates) != 1:
+        raise InputError(
+            f"cannot tell the tibia among {len(candidates)} long bones of similar length; crop the volume to the lower leg",
+            path,
+        )
+    tibia = candidates[0]
+    roles[tibia.label] = "tibia"
+    for b in main:
+        if b is not tibia:
+            roles[b.label] = "other bone"
+    return tibia, roles
+
+
+def _check_whole(tibia: _Body, offset: np.ndarray, volume: CTVolume, path: object) -> None:
+    """InputError when the tibia touches a face of the volume (only part of it was scanned)."""
+    names = ("first/last slice (top or bottom of the volume)", "first/last row", "first/last column")
+    for axis, s in enumerate(tibia.slices):
+        start, stop = s.start + offset[axis], s.stop + offset[axis]
+        if start == 0 or stop == volume.shape[axis]:
+            raise InputError(
+                f"the volume holds only part of the tibia: the bone reaches the {names[axis]}; "
+                "scan or crop so the whole tibia lies inside the volume",
+                path,
+            )
+
+
+def _fill_cross_sections(mask: np.ndarray, axis_world: np.ndarray, volume: CTVolume) -> np.ndarray:
+    """Fill holes in each cross-section perpendicular to the array axis nearest the bone's long axis."""
+    steps = volume.affine[:3, :3] / volume.spacing_mm
+    along = int(np.argmax(np.abs(steps.T @ axis_world)))  # 0: i, 1: j, 2: k
+    array_axis = 2 - along
+    out = np.moveaxis(mask, array_axis, 0).copy()
+    for n in range(out.shape[0]):
+        if out[n].any():
+            out[n] = _fill_holes(out[n])
+    return np.moveaxis(out, 0, array_axis)
+
+
+def _fill_holes(mask: np.ndarray) -> np.ndarray:
+    """``mask`` with every background region not connected to the array's border filled (2-D or 3-D)."""
+    background, _ = ndimage.label(~mask)
+    border = np.zeros(mask.shape, dtype=bool)
+    for axis in range(mask.ndim):
+        index = [slice(None)] * mask.ndim
+        for end in (0, -1):
+            index[axis] = end
+            border[tuple(index)] = True
+    outside_labels = np.unique(background[border & ~mask])
+    return ~np.isin(background, outside_labels) | mask
+
+
+def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume: CTVolume) -> bool:
+    """Split long bodies that are two bones touching (tibia and fibula at a joint), in place in ``labels``.
+
+    The filled body is eroded on a grid of about 1 mm, up to _SPLIT_ERODE_MM;
+    if it falls into two or more long parts, every voxel of the body goes to
+    the nearest part. Returns whether any body was split.
+    """
+    if not bodies:
+        return False
+    longest = max(b.length_mm for b in bodies)
+    spacing = volume.spacing_mm
+    factor = max(1, int(round(1.0 / float(spacing.min()))))
+    split_any = False
+    for body in bodies:
+        if body.length_mm < _LONG_SHARE * longest:
+            continue
+        region = labels[body.slices]
+        own = region == body.label
+        coarse = _block_mean(_fill_holes(own), factor) >= 0.5
+        parts = None
+        for _ in range(int(np.ceil(_SPLIT_ERODE_MM / (factor * spacing.min())))):
+            coarse = ndimage.binary_erosion(coarse)
+            found, n = ndimage.label(coarse)
+            if n < 2:
+                continue
+            sizes = np.bincount(found.ravel())[1:]
+            keep = [
+                lab + 1
+                for lab in np.flatnonzero(sizes >= _SPLIT_PART_SHARE * sizes.sum())
+                if _part_length(found == lab + 1, factor, body, volume) >= _SPLIT_LENGTH_SHARE * body.length_mm
+            ]
+            if len(keep) >= 2:
+                parts = np.where(np.isin(found, keep), found, 0)
+                break
+        if parts is None:
+            continue
+        _, nearest_index = ndimage.distance_transform_edt(parts == 0, return_indices=True)
+        nearest = parts[tuple(nearest_index)]
+        for axis in range(3):
+            nearest = np.repeat(nearest, factor, axis=axis)
+        nearest = nearest[: own.shape[0], : own.shape[1], : own.shape[2]]
+        first = nearest[own].min()
+        new = np.where(nearest[own] == first, body.label, nearest[own] + count)
+        region[own] = new
+        count = int(new.max()) if new.max() > count else count
+        split_any = True
+        log.info("split a body of %.0f mm into touching bones", body.length_mm)
+    return split_any
+
+
+def _block_mean(mask: np.ndarray, factor: int) -> np.ndarray:
+    """Mean of ``mask`` over factor^3 blocks (the array padded with False to a multiple)."""
+    if factor == 1:
+        return mask.astype(np.float32)
+    pad = [(0, (-n) % factor) for n in mask.shape]
+    padded = np.pad(mask, pad)
+    shape = []
+    for n in padded.shape:
+        shape += [n // factor, factor]
+    return padded.reshape(shape).mean(axis=(1, 3, 5), dtype=np.float32)
+
+
+def _part_length(part: np.ndarray, factor: int, body: _Body, volume: CTVolume) -> float:
+    """Extent (mm) of a coarse part along the body's principal axis."""
+    kji = np.argwhere(part) * factor
+    xyz = volume.index_to_world(kji[:, ::-1].astype(np.float64))
+    along = xyz @ body.axis
+    return float(along.max() - along.min())
+
+
+def _surface(field: np.ndarray, level: float, kji_offset: np.ndarray, volume: CTVolume):
+    """Marching cubes of ``field`` at ``level``, vertices mapped to LPS world mm."""
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    verts, faces, _, _ = marching_cubes(field, level=level, allow_degenerate=False)
+    ijk = (verts + kji_offset)[:, ::-1]
+    return trimesh.Trimesh(volume.index_to_world(ijk), faces, process=True)
+
+
+def _largest_part(mesh):
+    """The connected part of ``mesh`` with the most faces."""
+    import trimesh
+
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    biggest = np.argmax(np.bincount(labels))
+    if np.all(labels == biggest):
+        return mesh
+    part = mesh.submesh([np.flatnonzero(labels == biggest)], append=True)
+    return part
+
+
+def _decimate(mesh, target_faces: int):
+    """Quadric edge-collapse decimation to about ``target_faces`` triangles, topology kept."""
+    import pymeshlab
+    import trimesh
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(np.asarray(mesh.vertices), np.asarray(mesh.faces)))
+    ms.meshing_decimation_quadric_edge_collapse(
+        targetfacenum=int(target_faces), preservenormal=True, preservetopology=True, planarquadric=True
+    )
+    out = ms.current_mesh()
+    return trimesh.Trimesh(out.vertex_matrix(), out.face_matrix(), process=True)
