@@ -83,6 +83,16 @@ def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: n
 _BIG = 64
 
 
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(n, 3) unit vertex normals, area-weighted sums of the incident triangle normals."""
+    tri = vertices[triangles]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    acc = np.zeros_like(vertices, dtype=np.float64)
+    for k in range(3):
+        np.add.at(acc, triangles[:, k], fn)
+    return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-300)
+
+
 class TriangleLocator:
     """Closest-point queries on one triangle mesh (built once, queried many times).
 

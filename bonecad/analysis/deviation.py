@@ -34,7 +34,7 @@ import numpy as np
 
 from ..config import load_config
 from ..errors import InputError
-from .closest import TriangleLocator
+from .closest import TriangleLocator, vertex_normals
 from .nurbs_eval import project
 from .statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
 from .tessellation import Tessellation, TessellationSettings, tessellate
@@ -146,15 +146,6 @@ class SignedDistance:
     foot: np.ndarray
     refined: np.ndarray
     face: np.ndarray
-
-
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    tri = vertices[triangles]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    acc = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(acc, triangles[:, k], fn)
-    return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-300)
 
 
 def _signed(points, closest, normal):
@@ -307,7 +298,7 @@ def shape_deviation(
     weights = cad.weights * (tess.face_area_exact_mm2.sum() / tess.face_area_mesh_mm2.sum())
     locator = TriangleLocator(vertices, faces)
     near = locator.query(cad_points)
-    normal = np.einsum("nk,nkj->nj", near.barycentric, _vertex_normals(vertices, faces)[faces[near.triangle]])
+    normal = np.einsum("nk,nkj->nj", near.barycentric, vertex_normals(vertices, faces)[faces[near.triangle]])
     back_dev = -_signed(cad_points, near.points, normal)
     backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), snapped)
     timings["cad_to_mesh"] = time.perf_counter() - t0

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError, KernelError
+from .closest import vertex_normals
 from .nurbs_eval import SplineSurface, project
 
 
@@ -133,7 +134,7 @@ def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
         base = base.BasisSurface()
     try:
         if isinstance(base, Geom_BSplineSurface):
-            bs = Geom_BSplineSurface.DownCast(base.Copy())
+            bs = base.Copy()
             native = True
         elif isinstance(base, Geom_BezierSurface):
             bs = GeomConvert.SurfaceToBSplineSurface_s(base)
@@ -289,13 +290,7 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
     # faces without a spline: area-weighted triangle normals at the nodes
     missing = np.linalg.norm(normals, axis=1) == 0
     if missing.any():
-        t = vertices[triangles]
-        fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        acc = np.zeros_like(vertices)
-        for k in range(3):
-            np.add.at(acc, triangles[:, k], fn)
-        acc /= np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-300)
-        normals[missing] = acc[missing]
+        normals[missing] = vertex_normals(vertices, triangles)[missing]
     return Tessellation(
         vertices=vertices,
         triangles=triangles,

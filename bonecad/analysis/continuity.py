@@ -1,0 +1,335 @@
+"""Continuity across the seams between faces, and inside spline faces from their knots.
+
+Across every edge shared by two faces, at ``samples`` parameters along it, the
+two faces are evaluated at the points their own p-curves give:
+
+- **G0**: distance between the two surface points (mm);
+- **G1**: angle between the two outward normals (degrees);
+- **G2**: normal curvature of each face in the direction across the edge
+  (t_cross = n x t_edge, in the tangent plane), compared as the relative jump
+  |k1 - k2| / max(|k1|, |k2|, 1 / curvature_radius_ref_mm).
+
+Each seam is classed by its worst sample (thresholds in
+:class:`ContinuityTolerances`): ``"gap"`` (G0 fails), ``"C0"`` (closed but G1
+fails), ``"G1"`` (tangent-continuous, G2 fails), ``"G2"``.
+
+Inside a B-spline face, a knot of multiplicity m in a direction of degree p
+makes the surface C^(p-m) there (parametric continuity; geometric continuity
+can be higher if poles happen to line up). Bezier faces have no interior knots.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError, KernelError
+from .tessellation import shape_faces
+
+#: seam classes, worst first
+CLASSES = ("gap", "C0", "G1", "G2")
+
+
+@dataclass(frozen=True)
+class ContinuityTolerances:
+    """Thresholds of the seam classes; the reason for each default is given.
+
+    gap_mm : 0.01 mm, the sewing tolerance of the NURBS baseline (defaults.toml
+        [nurbs]) and 10x below the deviation bands: smaller gaps are closed.
+    angle_deg : 0.1 degree; CAD systems' usual tangency tolerance is 0.1-1 deg,
+        and an exactly G1 join measures ~1e-6 deg.
+    curvature_jump : 0.05, a 5 % relative jump of normal curvature; an
+        exactly G2 join measures ~1e-8.
+    curvature_radius_ref_mm : 1000 mm; curvatures below 1/1000 mm^-1 count as
+        flat, so a jump between two nearly flat faces is not magnified.
+    """
+
+    gap_mm: float = 0.01
+    angle_deg: float = 0.1
+    curvature_jump: float = 0.05
+    curvature_radius_ref_mm: float = 1000.0
+
+
+@dataclass(frozen=True)
+class SeamContinuity:
+    """Per shared edge (E edges, S samples each).
+
+    faces : (E, 2) int, indices (in ``shape_faces`` order) of the two faces
+    length_mm : (E,)
+    gap_mm, angle_deg, curvature_jump : (E, S) per sample
+    classes : (E,) str, worst class along the edge
+    """
+
+    faces: np.ndarray
+    length_mm: np.ndarray
+    gap_mm: np.ndarray
+    angle_deg: np.ndarray
+    curvature_jump: np.ndarray
+    classes: np.ndarray
+    tolerances: ContinuityTolerances
+
+    def summary(self) -> dict:
+        counts = {name: int(np.sum(self.classes == name)) for name in CLASSES}
+        worst = next((name for name in CLASSES if counts[name]), "G2") if len(self.classes) else "none"
+        return {
+            "edges": int(len(self.classes)),
+            "class_counts": counts,
+            "worst_class": worst,
+            "max_gap_mm": float(self.gap_mm.max()) if self.gap_mm.size else 0.0,
+            "max_angle_deg": float(self.angle_deg.max()) if self.angle_deg.size else 0.0,
+            "max_curvature_jump": float(self.curvature_jump.max()) if self.curvature_jump.size else 0.0,
+            "tolerances": {
+                "gap_mm": self.tolerances.gap_mm,
+                "angle_deg": self.tolerances.angle_deg,
+                "curvature_jump": self.tolerances.curvature_jump,
+                "curvature_radius_ref_mm": self.tolerances.curvature_radius_ref_mm,
+            },
+        }
+
+    def to_dict(self) -> dict:
+        return {
+            "summary": self.summary(),
+            "edges": [
+                {
+                    "faces": self.faces[i].tolist(),
+                    "length_mm": float(self.length_mm[i]),
+                    "max_gap_mm": float(self.gap_mm[i].max()),
+                    "max_angle_deg": float(self.angle_deg[i].max()),
+                    "max_curvature_jump": float(self.curvature_jump[i].max()),
+                    "class": str(self.classes[i]),
+                }
+                for i in range(len(self.classes))
+            ],
+        }
+
+
+@dataclass(frozen=True)
+class KnotContinuity:
+    """Continuity inside one spline face, per parameter direction.
+
+    face : index; kind : 'bspline' | 'bezier' | 'other'
+    degree : (2,) int (u, v); periodic : (2,) bool
+    min_continuity : (2,) int, lowest C^k at any interior knot (or the periodic seam);
+        equal to the degree's smoothness (a large number, 99) when there is none
+    low_knots : per direction, list of (knot, multiplicity, C^k) below C2
+    """
+
+    face: int
+    kind: str
+    degree: np.ndarray
+    periodic: np.ndarray
+    min_continuity: np.ndarray
+    low_knots: tuple[list, list] = field(default_factory=lambda: ([], []))
+
+    def to_dict(self) -> dict:
+        return {
+            "face": self.face,
+            "kind": self.kind,
+            "degree": self.degree.tolist(),
+            "periodic": self.periodic.tolist(),
+            "min_continuity": self.min_continuity.tolist(),
+            "low_knots": [[list(k) for k in d] for d in self.low_knots],
+        }
+
+
+#: C^k reported where there is no interior knot (a polynomial piece is C-infinity)
+SMOOTH = 99
+
+
+def _classify(gap, angle, jump, tol: ContinuityTolerances) -> str:
+    if gap > tol.gap_mm:
+        return "gap"
+    if angle > tol.angle_deg:
+        return "C0"
+    if jump > tol.curvature_jump:
+        return "G1"
+    return "G2"
+
+
+def _face_props(face, uv: np.ndarray):
+    """Points, outward unit normals, and (D1U, D1V, D2U, D2V, DUV) at uv (S, 2)."""
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.BRepLProp import BRepLProp_SLProps
+    from OCP.TopAbs import TopAbs_REVERSED
+
+    adaptor = BRepAdaptor_Surface(face)
+    props = BRepLProp_SLProps(adaptor, 2, 1e-9)
+    sign = -1.0 if face.Orientation() == TopAbs_REVERSED else 1.0
+    out = np.empty((len(uv), 7, 3))
+    for i, (u, v) in enumerate(uv):
+        props.SetParameters(float(u), float(v))
+        vecs = [props.Value(), props.D1U(), props.D1V(), props.D2U(), props.D2V(), props.DUV()]
+        out[i, 0] = vecs[0].X(), vecs[0].Y(), vecs[0].Z()
+        for k, vec in enumerate(vecs[1:], start=2):
+            out[i, k] = vec.X(), vec.Y(), vec.Z()
+    su, sv = out[:, 2], out[:, 3]
+    n = np.cross(su, sv)
+    n = sign * n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    return out[:, 0], n, out[:, 2:]
+
+
+def _normal_curvature(derivs: np.ndarray, normal: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Normal curvature (1/mm) in tangent ``direction``: k = II(d, d) / I(d, d).
+
+    d = a S_u + b S_v (least squares in the tangent plane); II is taken with the
+    oriented ``normal``, so both faces of a seam use the same sign convention.
+    """
+    su, sv, suu, svv, suv = (derivs[:, k] for k in range(5))
+    e = np.einsum("ij,ij->i", su, su)
+    f = np.einsum("ij,ij->i", su, sv)
+    g = np.einsum("ij,ij->i", sv, sv)
+    r1 = np.einsum("ij,ij->i", su, direction)
+    r2 = np.einsum("ij,ij->i", sv, direction)
+    det = e * g - f * f
+    a = (g * r1 - f * r2) / det
+    b = (e * r2 - f * r1) / det
+    ll = np.einsum("ij,ij->i", suu, normal)
+    mm = np.einsum("ij,ij->i", suv, normal)
+    nn = np.einsum("ij,ij->i", svv, normal)
+    first = e * a * a + 2 * f * a * b + g * b * b
+    return (ll * a * a + 2 * mm * a * b + nn * b * b) / first
+
+
+def seam_continuity(
+    shape, *, samples: int = 21, tolerances: ContinuityTolerances | None = None
+) -> SeamContinuity:
+    """G0/G1/G2 measures along every edge of ``shape`` shared by two different faces.
+
+    Degenerate edges and seams of one periodic face are skipped (the latter's
+    continuity is the face's own: see :func:`knot_continuity`).
+    """
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Curve2d
+    from OCP.GCPnts import GCPnts_AbscissaPoint
+    from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
+    from OCP.TopExp import TopExp
+    from OCP.TopoDS import TopoDS
+    from OCP.TopTools import TopTools_IndexedDataMapOfShapeListOfShape
+    from OCP.gp import gp_Pnt, gp_Vec
+
+    tol = tolerances or ContinuityTolerances()
+    if samples < 2:
+        raise InputError(f"samples must be >= 2, got {samples}")
+    faces = shape_faces(shape)
+    edge_map = TopTools_IndexedDataMapOfShapeListOfShape()
+    TopExp.MapShapesAndAncestors_s(shape, TopAbs_EDGE, TopAbs_FACE, edge_map)
+    rows = []
+    for i in range(1, edge_map.Extent() + 1):
+        edge = TopoDS.Edge_s(edge_map.FindKey(i))
+        if BRep_Tool.Degenerated_s(edge):
+            continue
+        ancestors = [TopoDS.Face_s(f) for f in edge_map.FindFromIndex(i)]
+        index = []
+        for f in ancestors:
+            k = next((j for j, g in enumerate(faces) if g.IsSame(f)), None)
+            if k is not None and k not in index:
+                index.append(k)
+        if len(index) != 2:
+            continue  # free edge, seam of one face, or non-manifold
+        curve = BRepAdaptor_Curve(edge)
+        t0, t1 = curve.FirstParameter(), curve.LastParameter()
+        # interior samples plus the two ends pulled in slightly (ends meet corners)
+        ts = t0 + (t1 - t0) * np.linspace(0.01, 0.99, samples)
+        tangents = np.empty((samples, 3))
+        for s, t in enumerate(ts):
+            p, d1 = gp_Pnt(), gp_Vec()
+            curve.D1(float(t), p, d1)
+            tangents[s] = d1.X(), d1.Y(), d1.Z()
+        tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
+        per_face = []
+        for k in index:
+            face = faces[k]
+            # the edge as it lies in this face (orientation matters for seams only)
+            oriented = next(
+                TopoDS.Edge_s(e) for e in _face_edges(face) if TopoDS.Edge_s(e).IsSame(edge)
+            )
+            pc = BRepAdaptor_Curve2d(oriented, face)
+            uv = np.array([(q.X(), q.Y()) for q in (pc.Value(float(t)) for t in ts)])
+            per_face.append(_face_props(face, uv))
+        (p1, n1, d1_), (p2, n2, d2_) = per_face
+        gap = np.linalg.norm(p1 - p2, axis=1)
+        cosang = np.clip(np.einsum("ij,ij->i", n1, n2), -1.0, 1.0)
+        angle = np.degrees(np.arccos(cosang))
+        # each face's own direction across the edge (they coincide when G1 holds)
+        k1 = _normal_curvature(d1_, n1, _unit(np.cross(n1, tangents)))
+        k2 = _normal_curvature(d2_, n2, _unit(np.cross(n2, tangents)))
+        scale = np.maximum(np.maximum(np.abs(k1), np.abs(k2)), 1.0 / tol.curvature_radius_ref_mm)
+        jump = np.abs(k1 - k2) / scale
+        length = GCPnts_AbscissaPoint.Length_s(curve)
+        rows.append((index, length, gap, angle, jump))
+    if not rows:
+        empty = np.zeros((0, samples))
+        return SeamContinuity(np.zeros((0, 2), int), np.zeros(0), empty, empty, empty, np.zeros(0, dtype=object), tol)
+    gap = np.array([r[2] for r in rows])
+    angle = np.array([r[3] for r in rows])
+    jump = np.array([r[4] for r in rows])
+    classes = np.array(
+        [_classify(g.max(), a.max(), j.max(), tol) for g, a, j in zip(gap, angle, jump)], dtype=object
+    )
+    return SeamContinuity(
+        faces=np.array([r[0] for r in rows], dtype=np.int64),
+        length_mm=np.array([r[1] for r in rows]),
+        gap_mm=gap,
+        angle_deg=angle,
+        curvature_jump=jump,
+        classes=classes,
+        tolerances=tol,
+    )
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+
+
+def _face_edges(face):
+    from OCP.TopAbs import TopAbs_EDGE
+    from OCP.TopExp import TopExp_Explorer
+
+    explorer = TopExp_Explorer(face, TopAbs_EDGE)
+    while explorer.More():
+        yield explorer.Current()
+        explorer.Next()
+
+
+def knot_continuity(shape) -> list[KnotContinuity]:
+    """Continuity inside each face from its knot multiplicities (module doc)."""
+    from OCP.BRep import BRep_Tool
+    from OCP.Geom import Geom_BezierSurface, Geom_BSplineSurface, Geom_RectangularTrimmedSurface
+
+    results = []
+    for index, face in enumerate(shape_faces(shape)):
+        surf = BRep_Tool.Surface_s(face)
+        while isinstance(surf, Geom_RectangularTrimmedSurface):
+            surf = surf.BasisSurface()
+        if isinstance(surf, Geom_BSplineSurface):
+            degree = np.array([surf.UDegree(), surf.VDegree()])
+            periodic = np.array([surf.IsUPeriodic(), surf.IsVPeriodic()])
+            low: tuple[list, list] = ([], [])
+            mins = []
+            for d, (knots, mults) in enumerate(
+                ((surf.UKnots(), surf.UMultiplicities()), (surf.VKnots(), surf.VMultiplicities()))
+            ):
+                values = [knots.Value(i) for i in range(knots.Lower(), knots.Upper() + 1)]
+                mult = [mults.Value(i) for i in range(mults.Lower(), mults.Upper() + 1)]
+                # interior knots; for a periodic direction the first knot is the seam
+                interior = range(0, len(values) - 1) if periodic[d] else range(1, len(values) - 1)
+                conts = []
+                for i in interior:
+                    c = int(degree[d] - mult[i])
+                    conts.append(c)
+                    if c < 2:
+                        low[d].append((float(values[i]), int(mult[i]), c))
+                mins.append(min(conts) if conts else SMOOTH)
+            results.append(KnotContinuity(index, "bspline", degree, periodic, np.array(mins), low))
+        elif isinstance(surf, Geom_BezierSurface):
+            degree = np.array([surf.UDegree(), surf.VDegree()])
+            results.append(
+                KnotContinuity(index, "bezier", degree, np.zeros(2, bool), np.array([SMOOTH, SMOOTH]))
+            )
+        else:
+            results.append(
+                KnotContinuity(index, "other", np.zeros(2, int), np.zeros(2, bool), np.array([SMOOTH, SMOOTH]))
+            )
+    if not results:
+        raise KernelError("no faces to analyse")
+    return results
