@@ -1,0 +1,396 @@
+"""Local refinement (exact) and edge removal (least squares) of T-splines.
+
+Refinement follows the blending-function refinement of Sederberg, Cardon,
+Finnigan, North, Zheng, Lyche 2004 ("T-spline simplification and local
+refinement", sec. 4) with the analysis-suitability closure of Scott, Li,
+Sederberg, Hughes 2012 ("Local refinement of analysis-suitable T-splines",
+CMAME 213-216):
+
+1. insert the requested knot-line segments into the T-mesh (each end runs on
+   to the nearest perpendicular edge, so the mesh stays valid);
+2. extend T-junctions whose extensions meet, one face at a time, until the
+   mesh is analysis-suitable;
+3. split every old blending function by Boehm knot insertion wherever the new
+   mesh has a knot line crossing its s or t ray that the function lacks; the
+   split-off pieces carry the old control points with the Boehm factors;
+4. where a piece's anchor or knot is not in the mesh, add the edge (the mesh
+   follows the function), and go back to 2.
+
+When every piece is exactly a blending function of the final mesh, the pieces
+that share an anchor are summed: new homogeneous control points = R @ old,
+and the surface is unchanged up to rounding. Only functions whose support a
+new line crosses are touched, so the number of control points grows locally.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from bonecad.errors import InputError, KernelError
+from bonecad.tspline.basis import split_coefficients
+from bonecad.tspline.suitability import check_suitability
+from bonecad.tspline.tmesh import END_LINES, TMesh
+from bonecad.tspline.tspline import TSpline
+
+#: Refinement closure rounds before giving up (each round only adds edges).
+_MAX_ROUNDS = 10_000
+
+
+@dataclass(frozen=True)
+class KnotSegment:
+    """A segment of a knot line to insert or remove.
+
+    axis : "s" for a line of constant s (it runs in t), "t" for constant t.
+    value : the line's knot value.
+    lo, hi : where it starts and ends along the line (t for axis "s", s for
+        axis "t"; for periodic s, hi may exceed the period's end, hi - lo <= period).
+    """
+
+    axis: Literal["s", "t"]
+    value: float
+    lo: float
+    hi: float
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Result of an exact refinement.
+
+    tspline : the refined T-spline (same surface).
+    matrix : csr (n_new, n_old): new [w P, w] = matrix @ old [w P, w].
+    added : number of control points added in all.
+    requested_vertices : vertices the requested segments alone created; the
+        rest of ``added`` is what analysis-suitability and consistency needed.
+    """
+
+    tspline: TSpline
+    matrix: sp.csr_matrix
+    added: int
+    requested_vertices: int
+
+
+@dataclass(frozen=True)
+class Removal:
+    """Result of removing edges: the coarser T-spline closest to the old one.
+
+    tspline : the T-spline on the coarser mesh (least squares in homogeneous space).
+    max_deviation_mm : largest distance to the old surface at the check samples
+        (rounding level when the old surface lies in the coarser space).
+    """
+
+    tspline: TSpline
+    max_deviation_mm: float
+
+
+# ---------------------------------------------------------------- edge editing
+class _Edges:
+    """Mutable copy of a mesh's edge arrays, for local edits during refinement."""
+
+    def __init__(self, mesh: TMesh):
+        self.mesh = mesh
+        self.s_e = mesh.s_edges.copy()
+        self.t_e = mesh.t_edges.copy()
+        self.s_n, self.t_n = mesh.shape
+        self.n_s_seg = self.s_e.shape[1]
+
+    def snapshot(self) -> TMesh:
+        m = self.mesh
+        return TMesh(m.s_lines, m.t_lines, self.s_e.copy(), self.t_e.copy(), m.s_period)
+
+    def _on_s(self, i: int, j: int) -> bool:
+        """Grid point (i, j) touched by an edge running in s."""
+        i %= self.s_n
+        before = self.s_e[j, (i - 1) % self.n_s_seg] if (self.mesh.periodic or i > 0) else False
+        after = self.s_e[j, i] if i < self.n_s_seg else False
+        return bool(before or after)
+
+    def _on_t(self, i: int, j: int) -> bool:
+        i %= self.s_n
+        return bool((j > 0 and self.t_e[i, j - 1]) or (j < self.t_n - 1 and self.t_e[i, j]))
+
+    def add_s_line(self, i: int, a: int, b: int) -> None:
+        """Edges on s-line i from t-line a to b (a < b), ends run on to s-edges."""
+        i %= self.s_n
+        self.t_e[i, a:b] = True
+        while not self._on_s(i, a):
+            a -= 1
+            self.t_e[i, a] = True
+        while not self._on_s(i, b):
+            self.t_e[i, b] = True
+            b += 1
+        # an edge reaching a clamped boundary continues through the end strip
+        if a == END_LINES - 1:
+            self.t_e[i, :a] = True
+        if b == self.t_n - END_LINES:
+            self.t_e[i, b:] = True
+
+    def add_t_line(self, j: int, a: int, b: int) -> None:
+        """Edges on t-line j from s-line a to b (unwrapped, a < b), ends run on to t-edges."""
+        self.s_e[j, np.arange(a, b) % self.n_s_seg] = True
+        for _ in range(self.s_n + 1):
+            if self._on_t(a, j):
+                break
+            a -= 1
+            self.s_e[j, a % self.n_s_seg] = True
+        for _ in range(self.s_n + 1):
+            if self._on_t(b, j):
+                break
+            self.s_e[j, b % self.n_s_seg] = True
+            b += 1
+        if not self.mesh.periodic:
+            if a == END_LINES - 1:
+                self.s_e[j, :a] = True
+            if b == self.s_n - END_LINES:
+                self.s_e[j, b:] = True
+
+    def cross_at(self, i: int, j: int, axis: str) -> None:
+        """Make grid point (i, j) lie on a line of the given axis ("s": constant s)."""
+        if axis == "s" and not self._on_t(i, j):
+            self.add_s_line(i, j - 1, j + 1)
+        elif axis == "t" and not self._on_s(i, j):
+            self.add_t_line(j, i - 1, i + 1)
+
+
+# ------------------------------------------------------------------- closure
+def _make_suitable(edges: _Edges) -> TMesh:
+    """Extend T-junctions with meeting extensions until the mesh is analysis-suitable."""
+    for _ in range(_MAX_ROUNDS):
+        mesh = edges.snapshot()
+        report = check_suitability(mesh)
+        if report.suitable:
+            return mesh
+        tj = report.junctions
+        _, right, _, up = mesh.edge_flags()
+        for k in np.unique(report.pairs):
+            i, j = tj.points[k]
+            if tj.axis[k] == 0:
+                edges.add_t_line(j, i, i + 1) if not right[i, j] else edges.add_t_line(j, i - 1, i)
+            else:
+                edges.add_s_line(i, j, j + 1) if not up[i, j] else edges.add_s_line(i, j - 1, j)
+    raise KernelError("refinement: analysis-suitability closure did not converge")
+
+
+def _split_pieces(mesh: TMesh, pieces: dict, todo: list) -> None:
+    """Split pieces by Boehm insertion of every knot the mesh's rays demand."""
+    s_n = mesh.shape[0]
+    on_t, on_s = mesh.on_t, mesh.on_s
+    while todo:
+        key = todo.pop()
+        if key not in pieces:
+            continue
+        sv, tv = key
+        cross = np.flatnonzero(on_t[:, tv[2]])
+        if mesh.periodic:
+            cross = (cross[None, :] + s_n * np.arange(sv[0] // s_n, sv[4] // s_n + 1)[:, None]).ravel()
+        miss = cross[(cross > sv[0]) & (cross < sv[4]) & ~np.isin(cross, sv)]
+        axis = 0
+        if miss.size == 0:
+            cross = np.flatnonzero(on_s[sv[2] % s_n, :])
+            miss = cross[(cross > tv[0]) & (cross < tv[4]) & ~np.isin(cross, tv)]
+            axis = 1
+            if miss.size == 0:
+                continue
+        k = int(miss[0])
+        old = sv if axis == 0 else tv
+        vals = mesh.s_value(np.array(old)) if axis == 0 else mesh.t_lines[np.array(old)]
+        kval = float(mesh.s_value(k)) if axis == 0 else float(mesh.t_lines[k])
+        c1, c2 = split_coefficients(vals, kval)
+        six = tuple(sorted(old + (k,)))
+        coef = pieces.pop(key)
+        for part, c in ((six[:5], c1), (six[1:], c2)):
+            new_key = _normal_key((part, tv) if axis == 0 else (sv, part), s_n, mesh.periodic)
+            target = pieces.setdefault(new_key, {})
+            for a, v in coef.items():
+                target[a] = target.get(a, 0.0) + c * v
+            todo.append(new_key)
+
+
+def _normal_key(key: tuple, s_n: int, periodic: bool) -> tuple:
+    """Shift unwrapped s indices so the anchor's s-line lies in 0..S-1."""
+    sv, tv = key
+    if not periodic:
+        return key
+    shift = (sv[2] // s_n) * s_n
+    return tuple(int(x - shift) for x in sv), tuple(tv)
+
+
+def _anchor_keys(mesh: TMesh) -> list:
+    s_idx, t_idx = mesh.anchor_knots
+    return [(tuple(a), tuple(b)) for a, b in zip(s_idx.tolist(), t_idx.tolist())]
+
+
+def _close(edges: _Edges, pieces: dict) -> TMesh:
+    """Grow the mesh and split the pieces until both agree (see module docstring)."""
+    for _ in range(_MAX_ROUNDS):
+        mesh = _make_suitable(edges)
+        anchor_set = set(_anchor_keys(mesh))
+        _split_pieces(mesh, pieces, [k for k in pieces if k not in anchor_set])
+        stray = [k for k in pieces if k not in anchor_set]
+        if not stray:
+            if len(anchor_set) != len(pieces):
+                raise KernelError(
+                    f"refinement: {len(anchor_set) - len(pieces)} new control point(s) received no "
+                    "contribution (the spline spaces are not nested)"
+                )
+            return mesh
+        s_n = mesh.shape[0]
+        for sv, tv in stray:
+            for m in range(5):
+                edges.cross_at(sv[m] % s_n, tv[2], "s")
+                edges.cross_at(sv[2] % s_n, tv[m], "t")
+    raise KernelError("refinement: did not converge")
+
+
+# ------------------------------------------------------------------ public API
+def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float | None = None) -> Refinement:
+    """Insert knot-line segments; exact, analysis-suitable local refinement.
+
+    segments : where to add knot lines; values not yet knots become new
+        lines of the grid; segment ends snap outward to existing lines and run
+        on to the nearest perpendicular edge.
+    tol : knot values closer than this are one line (default 1e-12 of the
+        parameter domain size).
+    """
+    mesh = ts.mesh
+    if tol is None:
+        size = max(np.ptp(mesh.t_lines), mesh.s_range[1] - mesh.s_range[0])
+        tol = 1e-12 * size
+    s_map = np.arange(mesh.shape[0])
+    t_map = np.arange(mesh.shape[1])
+    lines = []
+    for seg in segments:
+        if seg.axis not in ("s", "t"):
+            raise InputError(f"KnotSegment.axis: expected 's' or 't', got {seg.axis!r}")
+        if not seg.hi > seg.lo:
+            raise InputError(f"KnotSegment: expected lo < hi, got lo={seg.lo}, hi={seg.hi}")
+        mesh, k, new = mesh.with_line(seg.axis, seg.value, tol)
+        if new:
+            m = s_map if seg.axis == "s" else t_map
+            m[m >= k] += 1
+        lines.append(k)
+    edges = _Edges(mesh)
+    s_n = mesh.shape[0]
+    for seg, k in zip(segments, lines):
+        if seg.axis == "s":
+            a, b = _snap(mesh.t_lines, seg.lo, seg.hi, tol)
+            edges.add_s_line(k, a, b)
+        else:
+            a, b = _snap_s(mesh, seg.lo, seg.hi, tol)
+            edges.add_t_line(k, a, b)
+    requested = int(edges.snapshot().vertices.sum() - mesh.vertices.sum())
+
+    old_s, old_t = ts.mesh.anchor_knots
+    old_sn = ts.mesh.shape[0]
+    new_s = s_map[old_s % old_sn] + np.floor_divide(old_s, old_sn) * s_n
+    new_t = t_map[old_t]
+    pieces = {
+        _normal_key((tuple(a), tuple(b)), s_n, mesh.periodic): {n: 1.0}
+        for n, (a, b) in enumerate(zip(new_s.tolist(), new_t.tolist()))
+    }
+    final = _close(edges, pieces)
+    final.validate()
+    rows, cols, vals = [], [], []
+    for r, key in enumerate(_anchor_keys(final)):
+        for c, v in pieces[key].items():
+            rows.append(r)
+            cols.append(c)
+            vals.append(v)
+    n_new = len(final.anchors)
+    matrix = sp.csr_matrix((vals, (rows, cols)), shape=(n_new, ts.n_control))
+    pw = matrix @ np.hstack([ts.control_points * ts.weights[:, None], ts.weights[:, None]])
+    new = TSpline(final, pw[:, :3] / pw[:, 3:], pw[:, 3])
+    return Refinement(new, matrix, n_new - ts.n_control, requested)
+
+
+def refine_elements(ts: TSpline, elements: Sequence[int]) -> Refinement:
+    """Split Bezier elements into four at their parametric midlines (exact)."""
+    ext = ts.extraction
+    e = np.asarray(elements, dtype=np.int64).ravel()
+    if e.size and (e.min() < 0 or e.max() >= ext.n_elements):
+        raise InputError(f"elements: indices must lie in 0..{ext.n_elements - 1}")
+    sb, tb = ext.s_bounds[e], ext.t_bounds[e]
+    segs = []
+    for (s0, s1), (t0, t1) in zip(sb, tb):
+        segs.append(KnotSegment("s", 0.5 * (s0 + s1), t0, t1))
+        segs.append(KnotSegment("t", 0.5 * (t0 + t1), s0, s1))
+    return insert_segments(ts, segs)
+
+
+def _snap(lines: np.ndarray, lo: float, hi: float, tol: float) -> tuple[int, int]:
+    """Clamped direction: line indices at or outside [lo, hi] (real lines only)."""
+    real = np.arange(3, len(lines) - 3)
+    a = real[lines[real] <= lo + tol]
+    b = real[lines[real] >= hi - tol]
+    if a.size == 0 or b.size == 0:
+        raise InputError(f"segment [{lo}, {hi}] leaves the parameter range [{lines[0]}, {lines[-1]}]")
+    return int(a[-1]), int(b[0])
+
+
+def _snap_s(mesh: TMesh, lo: float, hi: float, tol: float) -> tuple[int, int]:
+    """s-range to (unwrapped) s-line indices at or outside it."""
+    if not mesh.periodic:
+        return _snap(mesh.s_lines, lo, hi, tol)
+    s_n = mesh.shape[0]
+    if hi - lo > mesh.s_period + tol:
+        raise InputError(f"segment [{lo}, {hi}] is longer than the s period {mesh.s_period}")
+    base = mesh.s_lines[0]
+    lo_w = base + np.mod(lo - base, mesh.s_period)
+    a = int(np.searchsorted(mesh.s_lines, lo_w + tol, side="right") - 1)
+    end = mesh.s_value(a) + (hi - lo) + (lo_w - mesh.s_value(a))
+    cand = np.arange(a + 1, a + s_n + 1)
+    b = int(cand[np.searchsorted(mesh.s_value(cand), end - tol)])
+    return a, b
+
+
+def remove_segments(ts: TSpline, segments: Sequence[KnotSegment], *, samples_per_element: int = 6) -> Removal:
+    """Remove T-mesh edges along knot-line segments and refit the surface.
+
+    Removes every unit edge on the segments' lines between lo and hi. The
+    coarser mesh must be valid and analysis-suitable (else InputError naming
+    the reason). The new control points minimise the squared distance of the
+    homogeneous surfaces at ``samples_per_element``^2 points per new element,
+    so the surface is kept exactly when it lies in the coarser space (rows
+    that end in T-points over a region where the rows agree).
+    """
+    mesh = ts.mesh
+    tol = 1e-12 * max(np.ptp(mesh.t_lines), mesh.s_range[1] - mesh.s_range[0])
+    s_e, t_e = mesh.s_edges.copy(), mesh.t_edges.copy()
+    for seg in segments:
+        if seg.axis == "s":
+            hit = np.flatnonzero(np.abs(mesh.s_lines - seg.value) <= tol)
+            if hit.size == 0:
+                raise InputError(f"remove: s = {seg.value} is not a knot line")
+            a, b = _snap(mesh.t_lines, seg.lo, seg.hi, tol)
+            t_e[hit[0], a:b] = False
+        else:
+            hit = np.flatnonzero(np.abs(mesh.t_lines[3:-3] - seg.value) <= tol) + 3
+            if hit.size == 0:
+                raise InputError(f"remove: t = {seg.value} is not a knot line")
+            a, b = _snap_s(mesh, seg.lo, seg.hi, tol)
+            s_e[hit[0], np.arange(a, b) % s_e.shape[1]] = False
+    coarse = mesh.with_edges(s_e, t_e)
+    report = check_suitability(coarse)
+    if not report.suitable:
+        raise InputError("remove: the coarser T-mesh is not analysis-suitable:\n" + report.describe())
+    shape = TSpline(coarse, np.zeros((len(coarse.anchors), 3)), np.ones(len(coarse.anchors)))
+    ext = shape.extraction
+    g = (np.arange(samples_per_element) + 0.5) / samples_per_element
+    uu, vv = np.meshgrid(g, g, indexing="ij")
+    s = ext.s_bounds[:, :1] + uu.ravel()[None, :] * np.diff(ext.s_bounds, axis=1)
+    t = ext.t_bounds[:, :1] + vv.ravel()[None, :] * np.diff(ext.t_bounds, axis=1)
+    s, t = s.ravel(), t.ravel()
+    basis = shape.basis_matrix(s, t)  # polynomial blending functions (weights 1)
+    old_shape = TSpline(mesh, np.zeros((ts.n_control, 3)), np.ones(ts.n_control))
+    target = old_shape.basis_matrix(s, t) @ np.hstack([ts.control_points * ts.weights[:, None], ts.weights[:, None]])
+    normal = (basis.T @ basis).tocsc()
+    pw = np.column_stack([spla.spsolve(normal, basis.T @ target[:, c]) for c in range(4)])
+    if np.any(pw[:, 3] <= 0):
+        raise InputError("remove: the refitted weights are not all positive")
+    new = TSpline(coarse, pw[:, :3] / pw[:, 3:], pw[:, 3])
+    dev = np.linalg.norm(new.evaluate(s, t).points - ts.evaluate(s, t).points, axis=1)
+    return Removal(new, float(dev.max()))
+
