@@ -161,19 +161,46 @@ def _check_ends_whole(bone: BoneMesh, centre: np.ndarray, axis: np.ndarray, heig
     reach = 0.02 * (hi - lo)
     missing = []
     for name, sign, level in (("low", -1.0, lo), ("high", 1.0, hi)):
-        # A cut is one plane at the very end (voxel staircases have many small terraces).
-        flat = (np.abs(face_h - level) < _CUT_PLANE_BAND_MM) & (normals @ (sign * axis) > cos_flat)
+        candidates = (np.abs(face_h - level) < reach) & (normals @ (sign * axis) > cos_flat)
+        if not candidates.any():
+            continue
+        # A cut is one plane (voxel staircases have many small terraces): keep
+        # the faces on the plane of the area-weighted median offset.
+        mean_normal = (normals[candidates] * areas[candidates, None]).sum(axis=0)
+        mean_normal /= np.linalg.norm(mean_normal)
+        centres = bone.vertices[bone.faces[candidates]].mean(axis=1)
+        offsets = centres @ mean_normal
+        order = np.argsort(offsets)
+        cum = np.cumsum(areas[candidates][order])
+        median = offsets[order][np.searchsorted(cum, 0.5 * cum[-1])]
+        cut_area = float(areas[candidates][np.abs(offsets - median) < _CUT_PLANE_BAND_MM].sum())
         inner = level - sign * reach
         section = section_mesh(bone.vertices, bone.faces, centre + inner * axis, axis)
-        if section.area > 0 and areas[flat].sum() > _FLAT_CUT_SHARE * section.area:
-            missing.append((name, float(areas[flat].sum())))
+        if section.area > 0 and cut_area > _FLAT_CUT_SHARE * section.area:
+            missing.append((name, cut_area))
     if missing:
-        desc = " and ".join(f"the {n} end along the long axis is a flat cut of {a:.0f} mm^2" for n, a in missing)
         raise InputError(
-            f"only part of a tibia: {desc}; bonecad needs the whole bone, from the tibial plateau "
-            "(proximal articular surface) to the plafond and medial malleolus (distal)",
+            f"only part of a tibia: {_missing_end_description(bone, centre, axis, lo, hi, missing)}; bonecad "
+            "needs the whole bone, from the tibial plateau (proximal articular surface) to the plafond and "
+            "medial malleolus (distal)",
             bone.source or None,
         )
+
+
+def _missing_end_description(bone, centre, axis, lo, hi, missing) -> str:
+    """Name the cut end(s): an intact plateau's section is ~8x the narrowest shaft section, a plafond's ~3x."""
+    if len(missing) == 2:
+        return "both ends are flat cuts (" + ", ".join(f"{a:.0f} mm^2" for _, a in missing) + ")"
+    name, cut_area = missing[0]
+    length = hi - lo
+    areas, _ = section_stack(bone.vertices, bone.faces, centre, axis, np.linspace(lo, hi, 40)[1:-1])
+    intact = areas[:12] if name == "high" else areas[-12:]
+    intact_is_plateau = intact.max() > 5.0 * areas[12:-12].min()
+    cut, kept = ("distal", "proximal") if intact_is_plateau else ("proximal", "distal")
+    return (
+        f"the {cut} end is missing (the mesh ends in a flat cut of {cut_area:.0f} mm^2; "
+        f"{length:.0f} mm of bone from the {kept} end are present)"
+    )
 
 
 def anatomical_frame(

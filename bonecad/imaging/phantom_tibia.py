@@ -24,8 +24,8 @@ class TibiaParameters:
     plateau_width_mm: float = 76.0  # medial-lateral
     plateau_depth_mm: float = 50.0  # anterior-posterior
     plateau_posterior_offset_mm: float = 7.0  # plateau overhangs the shaft posteriorly
-    shaft_width_mm: float = 24.0  # medial-lateral at mid-shaft
-    shaft_depth_mm: float = 27.0  # anterior-posterior at mid-shaft
+    shaft_width_mm: float = 22.0  # medial-lateral at mid-shaft
+    shaft_depth_mm: float = 25.0  # anterior-posterior at mid-shaft
     distal_width_mm: float = 50.0
     distal_depth_mm: float = 40.0
     malleolus_length_mm: float = 14.0  # how far the medial malleolus reaches below the plafond
@@ -60,8 +60,16 @@ def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> n
     rho = np.sqrt((dx / half_w) ** 2 + (dy / half_d) ** 2)
     radius = np.sqrt(half_w * half_d)
     body = (rho / (crest * notch) - 1.0) * radius
-    # Ends: the plateau and the plafond, rounded into the sides.
-    body = -_smooth_min(-body, -np.maximum(z - L, -z), 3.0)
+    # Ends: the plateau (two condylar dishes, the intercondylar eminence
+    # between them) and the plafond (a dome for the talus), rounded into the sides.
+    lateral_half = 0.25 * p.plateau_width_mm
+    top = (
+        L
+        - 3.0 * np.exp(-(((np.abs(x) - lateral_half) / (0.5 * lateral_half)) ** 2) - ((y - cy) / (0.25 * p.plateau_depth_mm)) ** 2)
+        + 5.0 * np.exp(-((x / 5.0) ** 2) - ((y - cy) / 8.0) ** 2)
+    )
+    bottom_surface = 3.0 * np.exp(-((x / (0.25 * p.distal_width_mm)) ** 2) - ((y / (0.25 * p.distal_depth_mm)) ** 2))
+    body = -_smooth_min(-body, -np.maximum(z - top, bottom_surface - z), 3.0)
     # Tibial tuberosity: an ellipsoid on the anterior proximal shaft.
     tz = L - 0.11 * L
     tub = np.sqrt(((x - 0.1 * p.plateau_width_mm) / 14.0) ** 2 + ((y - (0.5 * p.shaft_depth_mm + 0.2 * p.tuberosity_height_mm)) / p.tuberosity_height_mm) ** 2 + ((z - tz) / 22.0) ** 2) - 1.0
@@ -80,15 +88,18 @@ def phantom_tibia(params: TibiaParameters | None = None) -> BoneMesh:
     p = params or TibiaParameters()
     h = p.voxel_mm
     margin = 3.0 * h
+    # Grid offset by a fraction of a voxel: field values exactly zero at grid
+    # points (the flat ends) make marching cubes emit non-manifold vertices.
+    jitter = 0.371 * h
     half = 0.5 * max(p.plateau_width_mm, p.distal_width_mm) + 10.0
-    xs = np.arange(-half - margin, half + margin, h)
-    ys = np.arange(-p.plateau_depth_mm - margin, p.plateau_depth_mm + margin, h)
-    zs = np.arange(-p.malleolus_length_mm - 10.0, p.length_mm + margin, h)
+    xs = np.arange(-half - margin, half + margin, h) + jitter
+    ys = np.arange(-p.plateau_depth_mm - margin, p.plateau_depth_mm + margin, h) + jitter
+    zs = np.arange(-p.malleolus_length_mm - 10.0, p.length_mm + margin, h) + jitter
     X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
     field = _field(X, Y, Z, p).astype(np.float32)
     verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(h, h, h))
     verts += np.array([xs[0], ys[0], zs[0]])
     mesh = trimesh.Trimesh(verts, faces, process=True)
-    trimesh.smoothing.filter_taubin(mesh, iterations=10)
+    trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=10)
     source = "phantom:" + ",".join(f"{k}={v:g}" for k, v in asdict(p).items())
     return prepare_bone(mesh.vertices, mesh.faces, source=source, units="mm")

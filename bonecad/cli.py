@@ -1,0 +1,161 @@
+"""The ``bonecad`` command: one entry point, one subcommand per pipeline stage.
+
+Results go to files, progress and logs to stderr. Exit status: 0 success,
+2 bad input (one clear message naming the file), 1 internal failure.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from . import __version__
+from .errors import BonecadError, InputError
+
+log = logging.getLogger("bonecad")
+
+EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def _versions() -> str:
+    import numpy
+    import OCP  # noqa: F401
+    from OCP.Standard import Standard_Version  # noqa: F401
+
+    try:
+        from importlib.metadata import version
+
+        ocp = version("cadquery-ocp-novtk")
+        b3d = version("build123d")
+    except Exception:  # pragma: no cover - metadata missing in odd installs
+        ocp = b3d = "unknown"
+    return f"bonecad {__version__} (numpy {numpy.__version__}, OCP {ocp}, build123d {b3d})"
+
+
+class _Version(argparse.Action):
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(_versions())
+        parser.exit()
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, help="TOML file overriding defaults (angles, counts, tolerances)")
+    p.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
+                   help="units of the input mesh (default: auto, which accepts mm and names the unit otherwise)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log every step (debug)")
+    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+
+
+def _add_boundaries(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--distal-boundary", type=float, metavar="MM",
+                   help="height of the distal/shaft boundary above the plafond centre (default: from the anatomy)")
+    p.add_argument("--proximal-boundary", type=float, metavar="MM",
+                   help="height of the shaft/proximal boundary above the plafond centre (default: from the anatomy)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="bonecad",
+        description="Turn a CT scan or mesh of a tibia into native CAD models (NURBS and T-spline).",
+    )
+    parser.add_argument("--version", action=_Version, nargs=0, help="print versions (bonecad, OCP, build123d)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("inspect", help="summarise a bone mesh: units, bodies, tibia, side, defects repaired",
+                       description="Read and clean a mesh; print its units, bodies (volume, length), which body "
+                       "is the tibia, the side (left/right, from the anatomy), watertightness and repairs.")
+    p.add_argument("mesh", type=Path, help="STL, OBJ, PLY or OFF file")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    _add_common(p)
+
+    p = sub.add_parser("frame", help="anatomical frame: axes, planes, plateau ellipse -> frame.json, curves.step",
+                       description="Find the mechanical axis, the L-M and A-P planes, the plateau ellipse, the "
+                       "local proximal axis and the region boundaries; write frame.json and curves.step "
+                       "(points, lines, planes as native CAD entities) into --out.")
+    p.add_argument("mesh", type=Path, help="STL, OBJ, PLY or OFF file")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    _add_boundaries(p)
+    _add_common(p)
+
+    p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
+                       description="Generate the synthetic phantom tibia and run every stage available on it; "
+                       "write phantom.stl and the stage outputs into --out.")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    _add_common(p)
+    return parser
+
+
+def _setup_logging(args: argparse.Namespace) -> None:
+    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("bonecad: %(message)s"))
+    log.handlers[:] = [handler]
+    log.setLevel(level)
+    log.propagate = False
+
+
+def _print_inspect(summary: dict) -> None:
+    print(f"file        {summary['file']}")
+    print(f"units       {summary['units']} (detected)")
+    print(f"triangles   {summary['triangles']} (tibia, after cleanup)")
+    print(f"watertight  {'yes' if summary['watertight'] else 'no'}")
+    print(f"side        {summary['side']} (from the anatomy: medial malleolus, tuberosity)")
+    print(f"axis length {summary['mechanical_axis_length_mm']} mm (plateau centre to plafond centre)")
+    print(f"plateau     ellipse semi-axes {summary['plateau_semi_axes_mm'][0]} x {summary['plateau_semi_axes_mm'][1]} mm")
+    print("bodies")
+    for b in summary["bodies"]:
+        kept = "kept" if b["role"] == "tibia" else "dropped"
+        print(f"  {b['role']:<12} {b['triangles']:>8} triangles  {b['volume_mm3'] / 1000:>8.1f} cm3  "
+              f"{b['length_mm']:>6.1f} mm long  ({kept})")
+    print("repairs" if summary["repairs"] else "repairs     none")
+    for r in summary["repairs"]:
+        print(f"  {r}")
+
+
+def _run(args: argparse.Namespace) -> None:
+    from . import pipeline
+    from .config import load_config
+
+    config = load_config(args.config)
+    if args.command == "inspect":
+        summary = pipeline.inspect(args.mesh, units=args.units, config=config)
+        if args.json:
+            print(json.dumps(summary, indent=2))
+        else:
+            _print_inspect(summary)
+    elif args.command == "frame":
+        from .mesh.intake import load_bone
+
+        bone = load_bone(args.mesh, units=args.units, config=config)
+        frame = pipeline.run_frame(bone, args.out, config=config, distal_boundary_mm=args.distal_boundary,
+                                   proximal_boundary_mm=args.proximal_boundary)
+        print(f"{frame.side} tibia; frame.json and curves.step written to {args.out}")
+    elif args.command == "demo":
+        pipeline.run_demo(args.out, config=config)
+        print(f"demo outputs written to {args.out}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args)
+    try:
+        _run(args)
+    except InputError as exc:
+        print(f"bonecad: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except BonecadError as exc:
+        print(f"bonecad: internal error: {exc}", file=sys.stderr)
+        return EXIT_INTERNAL
+    except Exception as exc:  # an unexpected failure is still one clear line, not a traceback
+        log.debug("traceback", exc_info=True)
+        print(f"bonecad: internal error: {type(exc).__name__}: {exc} (run with --verbose for the traceback)",
+              file=sys.stderr)
+        return EXIT_INTERNAL
+    return EXIT_OK
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,80 @@
+"""The command line: outputs, exit statuses, clear errors, no partial output."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from bonecad.cli import main
+from bonecad.io.cad import read_step
+
+from .conftest import REAL_MESHES, real_mesh_params
+
+
+@pytest.fixture(scope="module")
+def phantom_stl(tmp_path_factory, phantom):
+    path = tmp_path_factory.mktemp("in") / "phantom.stl"
+    phantom.to_trimesh().export(path)
+    return path
+
+
+def test_frame_writes_json_and_step(phantom_stl, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["frame", str(phantom_stl), "--out", str(out), "-q"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["curves.step", "frame.json"]
+    data = json.loads((out / "frame.json").read_text())
+    assert data["side"] == "right"
+    assert np.allclose(np.linalg.norm(data["mechanical_axis"]["direction"]), 1.0)
+    names = {child.label for child in read_step(out / "curves.step").children}
+    assert {"mechanical_axis", "lm_plane", "ap_plane", "plateau_centre", "local_proximal_axis"} <= names
+
+
+def test_frame_boundaries_override(phantom_stl, tmp_path):
+    out = tmp_path / "out"
+    assert main(["frame", str(phantom_stl), "--out", str(out), "-q", "--distal-boundary", "40",
+                 "--proximal-boundary", "280"]) == 0
+    regions = json.loads((out / "frame.json").read_text())["regions_mm_above_origin"]
+    assert regions["shaft"] == [40.0, 280.0]
+
+
+def test_inspect_json(phantom_stl, capsys):
+    assert main(["inspect", str(phantom_stl), "--json", "-q"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["side"] == "right" and summary["bodies"][0]["role"] == "tibia"
+
+
+@pytest.mark.parametrize("content", [b"", b"solid x\nfacet normal 0 0 1\n", b"\x00" * 84 + b"\x10" * 50])
+def test_bad_input_exit_2_one_line_no_output(tmp_path, capsys, content):
+    bad = tmp_path / "bad.stl"
+    bad.write_bytes(content)
+    out = tmp_path / "out"
+    assert main(["frame", str(bad), "--out", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(bad) in err[0]
+    assert not out.exists()
+    assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())  # no staging folder left
+
+
+def test_metres_exit_2_names_units_option(phantom, tmp_path, capsys):
+    path = tmp_path / "metres.stl"
+    trimesh.Trimesh(phantom.vertices / 1000.0, phantom.faces).export(path)
+    assert main(["inspect", str(path), "-q"]) == 2
+    assert "--units m" in capsys.readouterr().err
+
+
+def test_console_script_help():
+    result = subprocess.run([sys.executable, "-m", "bonecad.cli", "--help"], capture_output=True, text=True)
+    assert result.returncode == 0
+    for command in ("inspect", "frame", "demo"):
+        assert command in result.stdout
+
+
+@pytest.mark.parametrize("path", real_mesh_params())
+def test_inspect_real_meshes(path, capsys):
+    assert main(["inspect", str(path), "-q"]) == 0
+    text = capsys.readouterr().out
+    assert "tibia" in text and "side" in text
