@@ -171,7 +171,7 @@ def signed_distance_to_shape(
     # first guess: not certified (exact projection does not need the nearest
     # triangle, only one in the foot point's basin); certified below for the
     # points that keep a tessellation distance
-    near = locator.query(points, k=4, certify=False)
+    near = locator.query(points)
     dist = np.empty(len(points))
     foot = np.empty((len(points), 3))
     face = tess.triangle_face[near.triangle]

@@ -35,12 +35,17 @@ class TessellationSettings:
         known partial-coverage failure (20 % missing).
     area_rel_eps : relative error asked of BRepGProp's adaptive integration
         (default settings were 1 % off on large B-spline faces).
+    max_edge_mm : triangles with a longer edge are bisected (new nodes on the
+        exact surface). BRepMesh leaves long slivers along flat directions (a
+        shaft, a cylinder); the closest-point search assumes compact triangles.
+        1 mm keeps a tibia near 10^5 triangles.
     """
 
     deflection_mm: float = 0.02
     angular_deflection_rad: float = 0.2
     coverage_tolerance: float = 0.005
     area_rel_eps: float = 1e-6
+    max_edge_mm: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -260,6 +265,7 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
         surface, native = face_spline_surface(face)
         if surface is not None and not native:
             uv = _native_to_spline_uv(face, surface, uv, nodes)
+        nodes, uv, tri = _bisect_long_edges(nodes, uv, tri, surface, settings.max_edge_mm)
         verts.append(nodes)
         tris.append(tri + offset)
         uvs.append(uv)
@@ -284,7 +290,10 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
             continue
         _, su, sv = _eval(surface, uv_all[sel])
         n = np.cross(su, sv)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        size = np.linalg.norm(n, axis=1, keepdims=True)
+        # degenerate points (poles, collapsed rows): no surface normal; left to the mesh below
+        good = size[:, 0] > 1e-10 * np.linalg.norm(su, axis=1) * np.linalg.norm(sv, axis=1)
+        n = np.where(good[:, None], n / np.maximum(size, 1e-300), 0.0)
         normals[sel] = -n if reversed_arr[index] else n
         chord[index] = _chord_error(surface, vertices, uv_all, triangles[tri_face_all == index])
     # faces without a spline: area-weighted triangle normals at the nodes
@@ -316,17 +325,63 @@ def _eval(surface: SplineSurface, uv: np.ndarray):
 def _chord_error(surface: SplineSurface, vertices, uv, triangles) -> float:
     """Largest distance from triangle centroids and edge midpoints to the surface (mm).
 
-    The chord error of a triangle peaks inside it, near these points; the value
-    is measured (by exact projection), not BRepMesh's requested deflection.
+    Sampled at the centroid, the edge midpoints and the circumcentre (where the
+    chord error of a triangle on a sphere peaks): a measured value, by exact
+    projection, not BRepMesh's requested deflection (which BRepMesh exceeds
+    by 2x on spheres).
     """
     if len(triangles) == 0:
         return 0.0
     weights = np.array(
         [[1 / 3, 1 / 3, 1 / 3], [0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [0.5, 0.0, 0.5]]
     )
-    pts = np.einsum("wk,mkj->mwj", weights, vertices[triangles]).reshape(-1, 3)
-    start = np.einsum("wk,mkj->mwj", weights, uv[triangles]).reshape(-1, 2)
+    t = vertices[triangles]
+    # circumcentre of acute triangles: where the chord error of a triangle
+    # inscribed in a sphere (the osculating surface) peaks; for an obtuse one
+    # it is the middle of the longest edge, sampled already
+    a2 = np.sum((t[:, 1] - t[:, 2]) ** 2, axis=1)
+    b2 = np.sum((t[:, 2] - t[:, 0]) ** 2, axis=1)
+    c2 = np.sum((t[:, 0] - t[:, 1]) ** 2, axis=1)
+    cc = np.column_stack([a2 * (b2 + c2 - a2), b2 * (c2 + a2 - b2), c2 * (a2 + b2 - c2)])
+    total = cc.sum(axis=1, keepdims=True)
+    acute = np.all(cc > 0, axis=1)
+    cc = np.where(acute[:, None], cc / np.where(total > 0, total, 1.0), 1 / 3)
+    bary = np.concatenate([np.broadcast_to(weights, (len(t), 4, 3)), cc[:, None, :]], axis=1)
+    pts = np.einsum("mwk,mkj->mwj", bary, t).reshape(-1, 3)
+    start = np.einsum("mwk,mkj->mwj", bary, uv[triangles]).reshape(-1, 2)
     proj = project(surface, pts, start)
     good = proj.residual_mm < 1e-6 + 1e-3 * np.linalg.norm(pts - proj.foot, axis=1)
     d = np.linalg.norm(pts - proj.foot, axis=1)
     return float(d[good].max()) if good.any() else float(d.max())
+
+
+def _bisect_long_edges(nodes, uv, tri, surface, max_edge_mm: float):
+    """Split triangles at the middle (in uv) of their longest edge until no edge exceeds max_edge_mm.
+
+    The new node is placed on the exact surface when there is one. Neighbours are
+    not split, so the result need not be conforming; distance queries do not
+    need it to be.
+    """
+    nodes, uv, tri = nodes.copy(), uv.copy(), tri.copy()
+    for _ in range(40):
+        t = nodes[tri]
+        lengths = np.stack([np.linalg.norm(t[:, (k + 1) % 3] - t[:, k], axis=1) for k in range(3)], axis=1)
+        longest = np.argmax(lengths, axis=1)
+        split = np.flatnonzero(lengths[np.arange(len(tri)), longest] > max_edge_mm)
+        if len(split) == 0:
+            break
+        k = longest[split]
+        a = tri[split, k]
+        b = tri[split, (k + 1) % 3]
+        c = tri[split, (k + 2) % 3]
+        mid_uv = 0.5 * (uv[a] + uv[b])
+        if surface is not None:
+            mid = _eval(surface, mid_uv)[0]
+        else:
+            mid = 0.5 * (nodes[a] + nodes[b])
+        new = len(nodes) + np.arange(len(split))
+        nodes = np.concatenate([nodes, mid])
+        uv = np.concatenate([uv, mid_uv])
+        tri[split] = np.column_stack([a, new, c])
+        tri = np.concatenate([tri, np.column_stack([new, b, c])])
+    return nodes, uv, tri
