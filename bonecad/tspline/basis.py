@@ -72,12 +72,23 @@ def bernstein3(u: np.ndarray, order: int = 0) -> np.ndarray:
     u : (n,) float. Returns (order + 1, n, 4) float.
     """
     v = 1.0 - u
-    out = [np.stack([v**3, 3 * u * v**2, 3 * u**2 * v, u**3], axis=-1)]
+    uu, vv, uv = u * u, v * v, u * v
+    out = np.empty((order + 1, len(u), 4))
+    out[0, :, 0] = vv * v
+    out[0, :, 1] = 3.0 * uv * v
+    out[0, :, 2] = 3.0 * uv * u
+    out[0, :, 3] = uu * u
     if order >= 1:
-        out.append(3.0 * np.stack([-(v**2), v**2 - 2 * u * v, 2 * u * v - u**2, u**2], axis=-1))
+        out[1, :, 0] = -3.0 * vv
+        out[1, :, 1] = 3.0 * (vv - 2.0 * uv)
+        out[1, :, 2] = 3.0 * (2.0 * uv - uu)
+        out[1, :, 3] = 3.0 * uu
     if order >= 2:
-        out.append(6.0 * np.stack([v, u - 2 * v, v - 2 * u, u], axis=-1))
-    return np.stack(out)
+        out[2, :, 0] = 6.0 * v
+        out[2, :, 1] = 6.0 * (u - 2.0 * v)
+        out[2, :, 2] = 6.0 * (v - 2.0 * u)
+        out[2, :, 3] = 6.0 * u
+    return out
 
 
 def bezier_coefficients(knots: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
