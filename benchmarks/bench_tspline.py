@@ -24,11 +24,14 @@ def tube(n_s: int, n_t: int, *, radius_mm: float = 20.0, length_mm: float = 300.
     return TSpline.from_grid(np.arange(n_s, dtype=float), np.linspace(0.0, 1.0, n_t), cp, s_period=float(n_s))
 
 
-def timed(label: str, target: float, fn):
-    t0 = time.perf_counter()
-    out = fn()
-    dt = time.perf_counter() - t0
-    print(f"{label:<48s} {dt:7.3f} s   (target < {target:g} s)")
+def timed(label: str, target: float, fn, *, repeat: int = 3):
+    """Run fn ``repeat`` times (the first also warms caches); print the best time."""
+    best, out = np.inf, None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    print(f"{label:<52s} {best:7.3f} s   (target < {target:g} s, best of {repeat})")
     return out
 
 
@@ -48,8 +51,12 @@ def main() -> None:
     big = tube(100, 101)
     big = refine_elements(big, rng.choice(big.extraction.n_elements, 100, replace=False)).tspline
     mesh = big.mesh
-    fresh = TMesh(mesh.s_lines, mesh.t_lines, mesh.s_edges, mesh.t_edges, mesh.s_period)
-    ext = timed("Bezier extraction (fresh mesh, ~10 k elements)", 2.0, lambda: extract(fresh))
+
+    def fresh_extraction():
+        """Extraction from a new mesh object (no cached ray casting)."""
+        return extract(TMesh(mesh.s_lines, mesh.t_lines, mesh.s_edges, mesh.t_edges, mesh.s_period))
+
+    ext = timed("Bezier extraction incl. ray casting (~10 k elements)", 2.0, fresh_extraction)
     print(f"    {ext.n_elements} elements, {len(ext.pair_anchor)} element-function pairs")
 
     from bonecad.tspline import occ
@@ -57,8 +64,8 @@ def main() -> None:
     mid = tube(64, 80)
     mid = refine_elements(mid, rng.choice(mid.extraction.n_elements, 40, replace=False)).tspline
     print(f"sewing test: {mid.extraction.n_elements} elements")
-    faces = timed("Bezier faces", 10.0, lambda: occ.bezier_faces(mid))
-    shell = timed("sewing into one shell", 10.0, lambda: occ.sew(faces))
+    faces = timed("Bezier faces", 10.0, lambda: occ.bezier_faces(mid), repeat=1)
+    shell = timed("sewing into one shell", 10.0, lambda: occ.sew(faces), repeat=1)
     print(f"    valid shell: {occ.is_valid(shell)}")
 
 
