@@ -167,10 +167,13 @@ def _make_suitable(edges: _Edges) -> TMesh:
         _, right, _, up = mesh.edge_flags()
         for k in np.unique(report.pairs):
             i, j = tj.points[k]
+            # close the missing edge up to the next perpendicular line
             if tj.axis[k] == 0:
-                edges.add_t_line(j, i, i + 1) if not right[i, j] else edges.add_t_line(j, i - 1, i)
+                step = (i, i + 1) if not right[i, j] else (i - 1, i)
+                edges.add_t_line(j, *step)
             else:
-                edges.add_s_line(i, j, j + 1) if not up[i, j] else edges.add_s_line(i, j - 1, j)
+                step = (j, j + 1) if not up[i, j] else (j - 1, j)
+                edges.add_s_line(i, *step)
     raise KernelError("refinement: analysis-suitability closure did not converge")
 
 
