@@ -120,12 +120,14 @@ class DeviationResult:
 
     unrefined_bound_mm : largest chord error of the tessellation (bounds the
         error of any distance that was not refined on the exact surface)
+    vertex_deviation_mm : (n,) signed deviation at each mesh vertex (for colour maps)
     timings_s : seconds per step
     """
 
     mesh_to_cad: DirectionResult
     cad_to_mesh: DirectionResult
     unrefined_bound_mm: float
+    vertex_deviation_mm: np.ndarray
     timings_s: dict[str, float]
 
     def to_dict(self) -> dict:
@@ -302,9 +304,13 @@ def shape_deviation(
     back_dev = -_signed(cad_points, near.points, normal)
     backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), snapped)
     timings["cad_to_mesh"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    vertex_dev = signed_distance_to_shape(vertices, tess).distance_mm
+    timings["vertices"] = time.perf_counter() - t0
     return DeviationResult(
         mesh_to_cad=forward,
         cad_to_mesh=backward,
         unrefined_bound_mm=float(tess.chord_error_mm.max()),
+        vertex_deviation_mm=vertex_dev,
         timings_s=timings,
     )
