@@ -22,7 +22,7 @@ def surface_distance(a, b, *, samples: int = 20000, seed: int = 0) -> SurfaceDis
     distances = []
     for source, target in ((a, b), (b, a)):
         points = _samples(source, samples, rng)[0]
-        distances.append(distance_to_surface(target, points, rng=rng))
+        distances.append(distance_to_surface(target, points))
     d = np.concatenate(distances)
     return SurfaceDistance(
         rms_mm=float(np.sqrt(np.mean(d**2))),
@@ -32,26 +32,11 @@ def surface_distance(a, b, *, samples: int = 20000, seed: int = 0) -> SurfaceDis
     )
 
 
-def distance_to_surface(mesh, points: np.ndarray, *, rng=None, candidates: int = 8) -> np.ndarray:
-    """(n,) distance (mm) from each of (n, 3) ``points`` to trimesh ``mesh``.
+def distance_to_surface(mesh, points: np.ndarray) -> np.ndarray:
+    """(n,) exact distance (mm) from each of (n, 3) ``points`` to trimesh ``mesh``."""
+    from ..analysis.closest import TriangleLocator
 
-    The triangles under the ``candidates`` nearest of dense surface samples (a
-    few per triangle) are searched exactly, which finds the closest triangle
-    for points near the surface without trimesh's memory-hungry broad phase.
-    """
-    from scipy.spatial import cKDTree
-    from trimesh.triangles import closest_point
-
-    rng = np.random.default_rng(0) if rng is None else rng
-    dense, face_of = _samples(mesh, max(200000, 4 * len(mesh.faces)), rng)
-    dense = np.concatenate([dense, mesh.triangles_center])
-    face_of = np.concatenate([face_of, np.arange(len(mesh.faces))])
-    _, nearest = cKDTree(dense).query(points, k=candidates)
-    faces = face_of[nearest]  # (n, candidates)
-    triangles = mesh.triangles[faces.ravel()]
-    repeated = np.repeat(points, candidates, axis=0)
-    closest = closest_point(triangles, repeated)
-    return np.linalg.norm(closest - repeated, axis=1).reshape(-1, candidates).min(axis=1)
+    return TriangleLocator(mesh.vertices, mesh.faces).query(points).distance
 
 
 def _samples(mesh, count: int, rng) -> tuple[np.ndarray, np.ndarray]:

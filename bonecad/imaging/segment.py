@@ -305,8 +305,8 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume:
     """Split long bodies that are two bones touching (tibia and fibula at a joint), in place in ``labels``.
 
     The filled body is eroded on a grid of about 1 mm, up to _SPLIT_ERODE_MM;
-    if it falls into two or more long parts, every voxel of the body goes to
-    the nearest part. Returns whether any body was split.
+    if it falls into two or more long parts, every voxel of the filled body
+    goes to the nearest part. Returns whether any body was split.
     """
     if not bodies:
         return False
@@ -319,7 +319,8 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume:
             continue
         region = labels[body.slices]
         own = region == body.label
-        coarse = _block_mean(_fill_holes(own), factor) >= 0.5
+        filled = _fill_holes(own)
+        coarse = _block_mean(filled, factor) >= 0.5
         parts = None
         for _ in range(int(np.ceil(_SPLIT_ERODE_MM / (factor * spacing.min())))):
             coarse = ndimage.binary_erosion(coarse)
@@ -342,9 +343,11 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume:
         for axis in range(3):
             nearest = np.repeat(nearest, factor, axis=axis)
         nearest = nearest[: own.shape[0], : own.shape[1], : own.shape[2]]
-        first = nearest[own].min()
-        new = np.where(nearest[own] == first, body.label, nearest[own] + count)
-        region[own] = new
+        # The filled body (marrow too) is shared out, so each bone keeps a closed cross-section.
+        target = filled & ((region == 0) | own)
+        first = nearest[target].min()
+        new = np.where(nearest[target] == first, body.label, nearest[target] + count)
+        region[target] = new
         count = int(new.max()) if new.max() > count else count
         split_any = True
         log.info("split a body of %.0f mm into touching bones", body.length_mm)

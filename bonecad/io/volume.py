@@ -15,6 +15,7 @@ Conventions (every volume bonecad reads or makes follows them):
 """
 from __future__ import annotations
 
+import gzip
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -272,6 +273,7 @@ def _read_dicom_folder(folder: Path, max_gap_mm: float, wanted: Path | None = No
     slices = [slices[i] for i in order]
     items = [items[i] for i in order]
     heights = heights[order]
+    first = slices[0]
     steps = np.diff(heights)
     if np.any(steps < 1e-3):
         dup = int(np.argmax(steps < 1e-3))
@@ -347,6 +349,11 @@ def _resample_slices(hu: np.ndarray, heights: np.ndarray, spacing: float) -> tup
 # ---------------------------------------------------------------- writing
 
 
+def _check_finite(volume: CTVolume, target: Path) -> None:
+    if not np.all(np.isfinite(volume.hu)):
+        raise InputError("cannot write the volume: some HU values are not finite", target)
+
+
 def write_nifti(volume: CTVolume, path: str | Path) -> Path:
     """Write ``volume`` as NIfTI-1 (.nii or .nii.gz), int16 HU, RAS world in the sform/qform. Returns the path."""
     import nibabel as nib
@@ -354,6 +361,7 @@ def write_nifti(volume: CTVolume, path: str | Path) -> Path:
     path = Path(path)
     if not path.name.lower().endswith((".nii", ".nii.gz")):
         raise InputError("a NIfTI file name must end in .nii or .nii.gz", path)
+    _check_finite(volume, path)
     data = np.clip(np.rint(volume.hu), -32768, 32767).astype(np.int16).transpose(2, 1, 0)
     affine_ras = RAS_TO_LPS @ volume.affine
     image = nib.Nifti1Image(data, affine_ras)
@@ -362,8 +370,11 @@ def write_nifti(volume: CTVolume, path: str | Path) -> Path:
     orthogonal = np.allclose(linear.T @ linear, np.eye(3), atol=1e-6)
     image.set_sform(affine_ras, code=1)
     image.set_qform(affine_ras if orthogonal else None, code=1 if orthogonal else 0)
+    payload = image.to_bytes()
+    if path.name.lower().endswith(".gz"):
+        payload = gzip.compress(payload, compresslevel=6)
     with staged_file(path) as tmp:
-        nib.save(image, str(tmp))
+        tmp.write_bytes(payload)
     return path
 
 
@@ -377,6 +388,7 @@ def write_dicom_series(volume: CTVolume, folder: str | Path, *, series_descripti
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
     folder = Path(folder)
+    _check_finite(volume, folder)
     affine = volume.affine
     row_cos = affine[:3, 0] / np.linalg.norm(affine[:3, 0])
     col_cos = affine[:3, 1] / np.linalg.norm(affine[:3, 1])
