@@ -130,7 +130,14 @@ def _fill_pinholes(raster: Raster) -> Raster:
     h, w = mask.shape
     shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
     count = sum(padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w].astype(int) for dy, dx in shifts)
-    hole = ~mask & (count >= 5)
+    # a pixel the front surface missed shows a sample from behind: far deeper than
+    # nearly all its neighbours (10 pixels); treat it as empty too
+    pixel_mm = (raster.extent_mm[3] - raster.extent_mm[2]) / h
+    nearer = sum(
+        (depth[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] > raster.depth + 10 * pixel_mm).astype(int)
+        for dy, dx in shifts
+    )
+    hole = (~mask & (count >= 5)) | (mask & (nearer >= 6))
     if not hole.any():
         return raster
     best = np.full(mask.shape, -np.inf)
@@ -336,8 +343,9 @@ def histogram_png(path: str | Path, histograms: dict, *, title: str = "Share of 
         w = e[1] - e[0]
         centres = np.concatenate([[e[0] - w / 2], 0.5 * (e[:-1] + e[1:]), [e[-1] + w / 2]])
         if first:
-            colours = ["0.5"] + ["tab:blue"] * (len(e) - 1) + ["0.5"]
-            ax.bar(centres, 100 * h.shares, width=0.9 * w, color=colours, label=label)
+            ax.bar(centres[1:-1], 100 * h.shares[1:-1], width=0.9 * w, color="tab:blue", label=label)
+            ax.bar(centres[[0, -1]], 100 * h.shares[[0, -1]], width=0.9 * w, color="0.5",
+                   label=f"{label}: under/overflow")
             first = False
         else:
             ax.step(centres, 100 * h.shares, where="mid", label=label)

@@ -102,7 +102,7 @@ def band_edges(band_width_mm: float | None = None, band_limit_mm: float | None =
     count = int(round(2 * limit / width))
     if abs(count * width - 2 * limit) > 1e-9 * limit:
         raise InputError(f"band limit {limit} mm is not a whole number of {width} mm bands")
-    return np.linspace(-limit, limit, count + 1)
+    return np.round(np.linspace(-limit, limit, count + 1), 9)
 
 
 def histogram(deviation_mm: np.ndarray, weights: np.ndarray | None = None, edges_mm: np.ndarray | None = None) -> Histogram:

@@ -1,0 +1,121 @@
+"""report.json / report.html and the golden-histogram regression mechanism.
+
+Goldens are updated on purpose with ``BONECAD_UPDATE_GOLDENS=1 pytest tests/test_analysis_report.py``.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bonecad.analysis.continuity import knot_continuity, seam_continuity
+from bonecad.analysis.deviation import shape_deviation
+from bonecad.analysis.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, compare_histogram
+from bonecad.analysis.render import deviation_map_png, histogram_png
+from bonecad.analysis.report import SCHEMA, ModelReport, write_report
+from bonecad.analysis.statistics import Histogram
+from bonecad.analysis.tessellation import TessellationSettings, tessellate
+from bonecad.errors import InputError
+
+RADIUS = 10.0
+GOLDEN = "sphere_r10_wavy"
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
+
+    shape = BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(RADIUS).Shape(), True).Shape()
+    return shape, tessellate(shape)
+
+
+def wavy_mesh(tess, amplitude_mm: float, offset_mm: float = 0.0):
+    """The sphere's tessellation with a radial wave of known amplitude (a stand-in 'bone mesh')."""
+    coarse = tessellate(tess.faces[0], TessellationSettings(deflection_mm=0.05))
+    v = coarse.vertices
+    unit = v / np.linalg.norm(v, axis=1, keepdims=True)
+    wave = amplitude_mm * np.sin(3 * np.arctan2(unit[:, 1], unit[:, 0])) * np.cos(2 * np.arcsin(unit[:, 2]))
+    return v + unit * (wave + offset_mm)[:, None], coarse.triangles
+
+
+def _regions(points):
+    return np.where(points[:, 2] < -5, "distal", np.where(points[:, 2] > 5, "proximal", "shaft"))
+
+
+def _deviation(sphere, offset_mm=0.0):
+    shape, tess = sphere
+    v, f = wavy_mesh(tess, 0.3, offset_mm)
+    return v, f, shape_deviation(v, f, shape, sample_points=20000, regions=_regions, tessellation=tess)
+
+
+def test_golden_histogram_passes_on_the_model_and_catches_a_perturbed_one(sphere):
+    """Stored golden data/goldens/sphere_r10_wavy.json (rewritten when BONECAD_UPDATE_GOLDENS=1)."""
+    _, _, good = _deviation(sphere)
+    result = assert_histogram_matches(good.mesh_to_cad.histogram, GOLDEN, tolerance=0.01,
+                                      note="NURBS sphere r=10 vs its 0.05 mm tessellation with a 0.3 mm wave")
+    assert result.ok
+    # the model moved 0.05 mm outwards: bands shift by half a band
+    _, _, moved = _deviation(sphere, offset_mm=0.05)
+    with pytest.raises(GoldenMismatch, match="percentage points"):
+        assert_histogram_matches(moved.mesh_to_cad.histogram, GOLDEN, tolerance=0.01, update=False)
+
+
+def test_golden_update_mode_and_missing_golden(tmp_path, monkeypatch):
+    hist = Histogram(np.array([-1.0, 0.0, 1.0]), np.array([0.1, 0.4, 0.4, 0.1]))
+    monkeypatch.delenv(UPDATE_ENV, raising=False)
+    with pytest.raises(InputError, match=UPDATE_ENV):
+        compare_histogram(hist, "new", golden_dir=tmp_path)
+    monkeypatch.setenv(UPDATE_ENV, "1")
+    assert compare_histogram(hist, "new", golden_dir=tmp_path).updated
+    monkeypatch.delenv(UPDATE_ENV)
+    assert compare_histogram(hist, "new", golden_dir=tmp_path).worst == 0.0
+    shifted = Histogram(hist.edges_mm, np.array([0.1, 0.38, 0.42, 0.1]))
+    assert compare_histogram(shifted, "new", golden_dir=tmp_path, tolerance=0.03).ok
+    with pytest.raises(GoldenMismatch, match=r"\[0, 1\)"):
+        assert_histogram_matches(shifted, "new", golden_dir=tmp_path, tolerance=0.01)
+    other_bands = Histogram(np.array([-2.0, 0.0, 2.0]), hist.shares)
+    with pytest.raises(GoldenMismatch, match="other bands"):
+        compare_histogram(other_bands, "new", golden_dir=tmp_path)
+
+
+def test_report_json_and_html(sphere, tmp_path):
+    shape, tess = sphere
+    v, f, dev = _deviation(sphere)
+    assert np.abs(dev.vertex_deviation_mm).max() <= 0.3 + 1e-6
+    frame = np.eye(3)
+    cmap = deviation_map_png(tmp_path / "deviation_nurbs.png", v, f, dev.vertex_deviation_mm, frame, height_px=200)
+    hist = histogram_png(tmp_path / "histogram_nurbs.png",
+                         {"overall": dev.mesh_to_cad.histogram, **dev.mesh_to_cad.region_histograms})
+    models = [
+        ModelReport("nurbs", {"faces": 1, "control_points": 45}, dev, seam_continuity(shape),
+                    knot_continuity(shape), {"deviation map": cmap, "histogram": hist}),
+        ModelReport("tspline", {"faces": 1, "control_points": 30}, dev, seam_continuity(shape), None, {}),
+    ]
+    json_path, html_path = write_report(
+        tmp_path, input_summary={"file": "sphere", "triangles": len(f)}, frame={"axes": frame},
+        models=models, timings_s=dict(dev.timings_s),
+    )
+    report = json.loads(json_path.read_text())
+    assert report["schema"] == SCHEMA
+    stats = report["models"]["nurbs"]["deviation"]["mesh_to_cad"]["stats"]
+    assert stats["rms_mm"] == pytest.approx(dev.mesh_to_cad.stats.rms_mm)
+    assert set(report["models"]["nurbs"]["deviation"]["mesh_to_cad"]["regions"]) == {"distal", "shaft", "proximal"}
+    assert report["models"]["nurbs"]["figures"] == {"deviation map": "deviation_nurbs.png", "histogram": "histogram_nurbs.png"}
+    rows = {r["quantity"]: r for r in report["comparison"]}
+    assert rows["control points"]["nurbs"] == 45 and rows["control points"]["tspline"] == 30
+    within = rows["surface within 0.25 mm"]["nurbs"]
+    d = dev.mesh_to_cad
+    assert within == pytest.approx(d.weights[np.abs(d.deviation_mm) <= 0.25].sum() / d.weights.sum())
+    text = html_path.read_text()
+    assert "NURBS versus T-spline" in text
+    assert text.count("data:image/png;base64,") == 2
+
+
+def test_report_without_both_models_has_no_comparison(tmp_path):
+    json_path, html_path = write_report(tmp_path, input_summary={}, frame={}, models=[ModelReport("nurbs")], timings_s={})
+    assert json.loads(json_path.read_text())["comparison"] is None
+    assert "NURBS versus T-spline" not in html_path.read_text()
+    with pytest.raises(InputError, match="missing"):
+        write_report(tmp_path, input_summary={}, frame={}, models=[ModelReport("nurbs", figures={"x": tmp_path / "no.png"})], timings_s={})
