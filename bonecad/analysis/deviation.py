@@ -10,7 +10,8 @@ Method and error bound
 1. The shape is tessellated finely (:func:`~bonecad.analysis.tessellation.tessellate`,
    coverage checked against exact face areas) and each query point's nearest
    triangle is found exactly (:class:`~bonecad.analysis.closest.TriangleLocator`,
-   certified search).
+   certified search) on shapes of several faces; on a single face the best of
+   the 4 triangles with the nearest centroids is enough to start step 2.
 2. On faces with a spline surface (all B-spline/Bezier faces, and analytic faces
    converted exactly), the point is projected onto the exact surface by
    Gauss-Newton from the (u, v) of that nearest point (``nurbs_eval.project``).
@@ -163,17 +164,24 @@ def signed_distance_to_shape(
     *,
     locator: TriangleLocator | None = None,
     residual_tol_mm: float = 1e-6,
+    certify: bool | None = None,
 ) -> SignedDistance:
     """Signed distances (mm, positive outside) of ``points`` (N, 3) to the tessellated shape.
 
     Exact projection on each face's spline surface where it converges (module doc).
+    ``certify``: find the provably nearest triangle as the start (needed when
+    several faces meet: a start on the wrong face converges on that face); None
+    (default) certifies only shapes with more than one face. Uncertified, the
+    best of the 4 triangles with the nearest centroids is the start, which on
+    one smooth face lies in the foot point's basin; 2-3x faster.
     """
     points = np.asarray(points, dtype=np.float64)
     locator = locator or TriangleLocator(tess.vertices, tess.triangles)
-    # first guess: not certified (exact projection does not need the nearest
-    # triangle, only one in the foot point's basin); certified below for the
-    # points that keep a tessellation distance
-    near = locator.query(points)
+    # first guess (see ``certify``); points that keep a tessellation distance
+    # are searched again, certified, below
+    if certify is None:
+        certify = tess.face_count > 1
+    near = locator.query(points, k=3 if certify else 4, certify=certify)
     dist = np.empty(len(points))
     foot = np.empty((len(points), 3))
     face = tess.triangle_face[near.triangle]
