@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from bonecad.errors import InputError
-from bonecad.imaging.compare import largest_body, surface_distance
+from bonecad.imaging.compare import round_trip, surface_distance
 from bonecad.imaging.phantom import AIR_HU, CORTICAL_HU, MARROW_HU, SOFT_TISSUE_HU, mesh_to_ct
 from bonecad.imaging.segment import segment_bone
 from bonecad.imaging.voxelize import occupancy
@@ -165,10 +165,7 @@ def test_a_cut_tibia_is_an_input_error(bone_ct):
 
 @pytest.mark.parametrize("path", real_mesh_params())
 def test_real_mesh_round_trip_at_1mm(path):
-    mesh = trimesh.load(path)
-    ct = mesh_to_ct(mesh.vertices, mesh.faces, voxel_mm=1.0, noise_hu=30.0)
-    result = segment_bone(ct)
-    d = surface_distance(result.to_trimesh(), largest_body(mesh))
+    d = round_trip(trimesh.load(path), voxel_mm=1.0).distance
     # A systematic 0.05 mm offset over a 350 mm bone moves the centroid by up to 1 mm; a mirror by far more.
     assert d.rms_mm < 0.3 and d.centroid_shift_mm < 1.0
 
@@ -177,8 +174,5 @@ def test_real_mesh_round_trip_at_1mm(path):
 @pytest.mark.parametrize("path", [p for p in real_mesh_params() if "TLEM2" in str(p.values[0]) or p.marks][:1])
 def test_real_mesh_round_trip_at_half_mm(path):
     """TLEM2: its fibula touches the tibia (0.17 mm gap), the hardest of the five; about 15 s."""
-    mesh = trimesh.load(path)
-    ct = mesh_to_ct(mesh.vertices, mesh.faces, voxel_mm=0.5, noise_hu=30.0)
-    result = segment_bone(ct)
-    d = surface_distance(result.to_trimesh(), largest_body(mesh))
+    d = round_trip(trimesh.load(path), voxel_mm=0.5).distance
     assert d.rms_mm < 0.3 and d.centroid_shift_mm < 0.5

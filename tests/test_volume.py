@@ -228,3 +228,13 @@ def test_writers_refuse_non_finite_values_and_leave_nothing(tmp_path):
     with pytest.raises(InputError, match="not finite"):
         write_nifti(bad, tmp_path / "out.nii")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_nifti_scaling_is_applied(tmp_path):
+    stored = np.arange(-1000, 1000, dtype=np.int16).reshape(10, 10, 20)  # nibabel order [i, j, k]
+    image = nib.Nifti1Image(stored, np.diag([0.5, 0.5, 2.0, 1.0]))
+    image.header.set_slope_inter(2.0, -24.0)
+    nib.save(image, str(tmp_path / "scaled.nii"))
+    back = read_volume(tmp_path / "scaled.nii")
+    np.testing.assert_array_equal(back.hu, stored.transpose(2, 1, 0) * 2.0 - 24.0)
+    np.testing.assert_allclose(back.spacing_mm, [0.5, 0.5, 2.0])

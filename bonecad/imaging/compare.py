@@ -18,10 +18,12 @@ class SurfaceDistance:
 
 def surface_distance(a, b, *, samples: int = 20000, seed: int = 0) -> SurfaceDistance:
     """Distances between trimesh meshes ``a`` and ``b``: area-uniform samples of each, nearest points on the other."""
+    import trimesh
+
     rng = np.random.default_rng(seed)
     distances = []
     for source, target in ((a, b), (b, a)):
-        points = _samples(source, samples, rng)[0]
+        points, _ = trimesh.sample.sample_surface(source, samples, seed=int(rng.integers(1 << 31)))
         distances.append(distance_to_surface(target, points))
     d = np.concatenate(distances)
     return SurfaceDistance(
@@ -39,16 +41,36 @@ def distance_to_surface(mesh, points: np.ndarray) -> np.ndarray:
     return TriangleLocator(mesh.vertices, mesh.faces).query(points).distance
 
 
-def _samples(mesh, count: int, rng) -> tuple[np.ndarray, np.ndarray]:
-    """(count, 3) area-uniform points on ``mesh`` and (count,) their face indices."""
-    import trimesh
-
-    return trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 31)))
-
-
 def largest_body(mesh):
     """The body of trimesh ``mesh`` enclosing the most volume (the tibia of a tibia + fibula mesh)."""
     bodies = mesh.split(only_watertight=False)
     if len(bodies) <= 1:
         return mesh
     return max(bodies, key=lambda m: abs(m.volume))
+
+
+@dataclass(frozen=True)
+class RoundTrip:
+    """Mesh -> synthetic CT -> segmented mesh, against the mesh's largest body."""
+
+    distance: SurfaceDistance
+    segmented: object  # BoneMesh
+    ct_shape: tuple[int, int, int]  # (nk, nj, ni) voxels
+    phantom_seconds: float
+    segment_seconds: float
+
+
+def round_trip(mesh, *, voxel_mm: float = 0.5, noise_hu: float = 30.0, seed: int = 0) -> RoundTrip:
+    """Synthetic CT of trimesh ``mesh`` (``voxel_mm`` mm, ``noise_hu`` HU noise), segmented, compared with its tibia."""
+    import time
+
+    from .phantom import mesh_to_ct
+    from .segment import segment_bone
+
+    start = time.perf_counter()
+    ct = mesh_to_ct(mesh.vertices, mesh.faces, voxel_mm=voxel_mm, noise_hu=noise_hu, seed=seed)
+    middle = time.perf_counter()
+    segmented = segment_bone(ct)
+    end = time.perf_counter()
+    distance = surface_distance(segmented.to_trimesh(), largest_body(mesh), seed=seed)
+    return RoundTrip(distance, segmented, ct.shape, middle - start, end - middle)

@@ -133,15 +133,23 @@ def _read_nifti(path: Path) -> CTVolume:
 
     try:
         image = nib.load(str(path))
-        data = np.asarray(image.dataobj, dtype=np.float32)
+        proxy = image.dataobj
+        # Unscaled stored values (a memory map for .nii), scaled slice by slice in float32.
+        raw = np.squeeze(np.asanyarray(proxy.get_unscaled()))
+        slope = float(proxy.slope) if np.isfinite(proxy.slope) and proxy.slope != 0 else 1.0
+        inter = float(proxy.inter) if np.isfinite(proxy.inter) else 0.0
     except Exception as exc:  # nibabel raises many kinds on a damaged file
         raise InputError(f"cannot read NIfTI: {exc}", path) from exc
-    data = np.squeeze(data)
-    if data.ndim != 3:
-        raise InputError(f"expected a 3-D image, got shape {data.shape}", path)
-    affine_ras = np.asarray(image.affine, dtype=np.float64)
+    if raw.ndim != 3:
+        raise InputError(f"expected a 3-D image, got shape {raw.shape}", path)
     # nibabel's array is [i, j, k]; bonecad's is [k, j, i].
-    hu = np.ascontiguousarray(data.transpose(2, 1, 0))
+    hu = np.empty(raw.shape[::-1], dtype=np.float32)
+    try:
+        for k in range(raw.shape[2]):
+            hu[k] = raw[:, :, k].T * np.float32(slope) + np.float32(inter)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read NIfTI data: {exc}", path) from exc
+    affine_ras = np.asarray(image.affine, dtype=np.float64)
     return CTVolume(hu=hu, affine=RAS_TO_LPS @ affine_ras, source=str(path))
 
 
