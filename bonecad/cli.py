@@ -79,6 +79,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_boundaries(p)
     _add_common(p)
 
+    p = sub.add_parser("curves", help="contour curves as B-spline edges -> curves.step/.iges/.json/.png",
+                       description="Section the tibia (distal and proximal half-planes, shaft planes), rebuild "
+                       "every section as a cubic B-spline within its tolerance, and write curves.step and "
+                       "curves.iges (curves and reference entities), curves.json (poles, knots, achieved "
+                       "deviation, repairs), curves.png and frame.json into --out.")
+    p.add_argument("mesh", type=Path, help="STL, OBJ, PLY or OFF file")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    _add_boundaries(p)
+    _add_common(p)
+
     p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
                        description="Generate the synthetic phantom tibia and run every stage available on it; "
                        "write phantom.stl and the stage outputs into --out.")
@@ -132,6 +142,17 @@ def _run(args: argparse.Namespace) -> None:
         frame = pipeline.run_frame(bone, args.out, config=config, distal_boundary_mm=args.distal_boundary,
                                    proximal_boundary_mm=args.proximal_boundary)
         print(f"{frame.side} tibia; frame.json and curves.step written to {args.out}")
+    elif args.command == "curves":
+        from .mesh.intake import load_bone
+
+        bone = load_bone(args.mesh, units=args.units, config=config)
+        contours = pipeline.run_curves(bone, args.out, config=config, distal_boundary_mm=args.distal_boundary,
+                                       proximal_boundary_mm=args.proximal_boundary)
+        for name, summary in contours.summary().items():
+            print(f"{name:<9} {summary['curves']:>3} curves x {summary['control_points_per_curve']} control points, "
+                  f"worst {summary['worst_max_deviation_mm']:.3f} mm (tolerance {summary['tolerance_mm']} mm, "
+                  f"{summary['within_tolerance']}/{summary['curves']} within)")
+        print(f"curves written to {args.out}")
     elif args.command == "demo":
         pipeline.run_demo(args.out, config=config)
         print(f"demo outputs written to {args.out}")

@@ -19,7 +19,8 @@ import numpy as np
 
 from .anatomy.frame import AnatomicalFrame, anatomical_frame
 from .config import load_config
-from .io.cad import compound, frame_shapes, write_step
+from .curves.contours import ContourSet, bone_coordinates, contour_curves
+from .io.cad import compound, frame_shapes, write_iges, write_step
 from .io.output import staged_output
 from .mesh.bone_mesh import BoneMesh
 from .mesh.intake import Units, load_bone
@@ -99,6 +100,82 @@ def run_frame(
     return frame
 
 
+def curve_shapes(contours: ContourSet) -> list:
+    """Named edges of every contour curve, mapped back to scanner coordinates (exact: affine map of poles)."""
+    from .curves.occ import to_edge
+
+    frame = contours.frame
+    return [to_edge(c.curve.transformed(frame.axes, frame.origin), c.name) for c in contours.all_curves()]
+
+
+def contours_dict(contours: ContourSet) -> dict:
+    """curves.json: per curve its poles and knots (scanner mm), achieved deviation, tolerance, repairs."""
+    frame = contours.frame
+    curves = []
+    for c in contours.all_curves():
+        scanner = c.curve.transformed(frame.axes, frame.origin)
+        curves.append({
+            "name": c.name,
+            "region": c.region,
+            "index": c.index,
+            "angle_deg": c.angle_deg,
+            "level_mm": None if c.level_mm is None else round(c.level_mm, 4),
+            "degree": c.curve.degree,
+            "periodic": c.curve.periodic,
+            "control_points": np.round(scanner.control_points, 6).tolist(),
+            "knots": np.round(scanner.knots, 12).tolist(),
+            "tolerance_mm": c.tolerance_mm,
+            "max_deviation_mm": round(c.max_deviation_mm, 5),
+            "rms_deviation_mm": round(c.rms_deviation_mm, 5),
+            "within_tolerance": c.within_tolerance,
+            "exceeds_tolerance_by_mm": round(max(0.0, c.max_deviation_mm - c.tolerance_mm), 5),
+            "repairs": list(c.repairs),
+        })
+    return {
+        "coordinates": "input (scanner) coordinates, mm",
+        "regions": contours.summary(),
+        "shaft_loft_error_p99_mm": round(contours.shaft_fit_error_mm, 4),
+        "notes": list(contours.notes),
+        "curves": curves,
+    }
+
+
+def run_curves(
+    bone: BoneMesh,
+    out_dir: str | Path,
+    *,
+    config: dict | None = None,
+    distal_boundary_mm: float | None = None,
+    proximal_boundary_mm: float | None = None,
+) -> ContourSet:
+    """``bonecad curves``: curves.step/.iges (curves + reference entities), curves.json, curves.png, frame.json."""
+    from .curves.plot import curves_png
+
+    config = config or load_config()
+    timings = Timings()
+    with staged_output(out_dir) as stage_dir:
+        with timings.stage("anatomical frame"):
+            frame = anatomical_frame(
+                bone, config=config, distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm
+            )
+        with timings.stage("contour curves"):
+            contours = contour_curves(bone, frame, config=config)
+        with timings.stage("curves to STEP and IGES"):
+            shapes = compound([compound(curve_shapes(contours), "contour_curves"),
+                               compound(frame_shapes(frame), "reference_entities")], "bonecad_curves")
+            write_step(shapes, stage_dir / "curves.step")
+            write_iges(shapes, stage_dir / "curves.iges")
+        with timings.stage("curves figure"):
+            vertices, faces = bone_coordinates(bone, frame)
+            curves_png(stage_dir / "curves.png", vertices, faces, contours)
+        write_json({"input": mesh_summary(bone), **frame.as_dict(), "timings_s": dict(timings)}, stage_dir / "frame.json")
+        write_json({**contours_dict(contours), "timings_s": dict(timings)}, stage_dir / "curves.json")
+    for name, summary in contours.summary().items():
+        log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name, summary["curves"],
+                 summary["worst_max_deviation_mm"], summary["tolerance_mm"], summary["within_tolerance"])
+    return contours
+
+
 def run_demo(out_dir: str | Path, *, config: dict | None = None) -> None:
     """``bonecad demo``: the phantom tibia through every stage available, outputs in ``out_dir``."""
     from .imaging.phantom_tibia import phantom_tibia
@@ -109,4 +186,4 @@ def run_demo(out_dir: str | Path, *, config: dict | None = None) -> None:
         with timings.stage("phantom tibia"):
             bone = phantom_tibia()
             bone.to_trimesh().export(stage_dir / "phantom.stl")
-        run_frame(bone, stage_dir, config=config)
+        run_curves(bone, stage_dir, config=config)

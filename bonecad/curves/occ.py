@@ -1,0 +1,51 @@
+"""Contour curves to OpenCascade: the one boundary where numpy B-splines become Geom_BSplineCurve edges."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import KernelError
+from .bspline import BSplineCurve
+
+
+def _knots_and_multiplicities(knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    values, counts = np.unique(np.round(knots, 14), return_counts=True)
+    return values, counts
+
+
+def to_geom_curve(curve: BSplineCurve):
+    """A Geom_BSplineCurve equal to ``curve`` (periodic curves stay periodic, uniform single knots)."""
+    from OCP.Geom import Geom_BSplineCurve
+    from OCP.gp import gp_Pnt
+    from OCP.TColgp import TColgp_Array1OfPnt
+    from OCP.TColStd import TColStd_Array1OfInteger, TColStd_Array1OfReal
+
+    poles = TColgp_Array1OfPnt(1, curve.count)
+    for i, p in enumerate(curve.control_points, start=1):
+        poles.SetValue(i, gp_Pnt(*map(float, p)))
+    if curve.periodic:
+        values = np.asarray(curve.knots, dtype=np.float64)
+        counts = np.ones(len(values), dtype=int)
+    else:
+        values, counts = _knots_and_multiplicities(curve.knots)
+    knots = TColStd_Array1OfReal(1, len(values))
+    mults = TColStd_Array1OfInteger(1, len(values))
+    for i, (v, m) in enumerate(zip(values, counts), start=1):
+        knots.SetValue(i, float(v))
+        mults.SetValue(i, int(m))
+    try:
+        return Geom_BSplineCurve(poles, knots, mults, curve.degree, curve.periodic)
+    except Exception as exc:  # OCP raises Standard_ConstructionError
+        raise KernelError(f"OpenCascade rejected a B-spline curve ({curve.count} poles): {exc}") from exc
+
+
+def to_edge(curve: BSplineCurve, name: str = ""):
+    """A named build123d Edge of ``curve``."""
+    from build123d import Edge
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeEdge
+
+    maker = BRepBuilderAPI_MakeEdge(to_geom_curve(curve))
+    if not maker.IsDone():
+        raise KernelError(f"OpenCascade could not make an edge of curve {name!r}")
+    edge = Edge(maker.Edge())
+    edge.label = name
+    return edge
