@@ -89,6 +89,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_boundaries(p)
     _add_common(p)
 
+    p = sub.add_parser("segment", help="CT volume -> tibia surface mesh",
+                       description="Read a CT volume (DICOM folder, .nii/.nii.gz, .nrrd, .mha), segment the "
+                       "tibia (cortical bone threshold, marrow filled, fibula/femur/talus separated) and write its "
+                       "surface (marching cubes, Taubin smoothing) in world mm (DICOM LPS).")
+    p.add_argument("ct", type=Path, help="DICOM folder or volume file")
+    p.add_argument("--out", type=Path, required=True, help="mesh file to write (.stl, .ply, .obj, .off)")
+    _add_common(p)
+
     p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
                        description="Generate the synthetic phantom tibia and run every stage available on it; "
                        "write phantom.stl and the stage outputs into --out.")
@@ -139,20 +147,25 @@ def _run(args: argparse.Namespace) -> None:
         from .mesh.intake import load_bone
 
         bone = load_bone(args.mesh, units=args.units, config=config)
-        frame = pipeline.run_frame(bone, args.out, config=config, distal_boundary_mm=args.distal_boundary,
-                                   proximal_boundary_mm=args.proximal_boundary)
+        frame, _ = pipeline.run_stages(bone, args.out, until="frame", config=config,
+                                       distal_boundary_mm=args.distal_boundary,
+                                       proximal_boundary_mm=args.proximal_boundary)
         print(f"{frame.side} tibia; frame.json and curves.step written to {args.out}")
     elif args.command == "curves":
         from .mesh.intake import load_bone
 
         bone = load_bone(args.mesh, units=args.units, config=config)
-        contours = pipeline.run_curves(bone, args.out, config=config, distal_boundary_mm=args.distal_boundary,
-                                       proximal_boundary_mm=args.proximal_boundary)
+        _, contours = pipeline.run_stages(bone, args.out, until="curves", config=config,
+                                          distal_boundary_mm=args.distal_boundary,
+                                          proximal_boundary_mm=args.proximal_boundary)
         for name, summary in contours.summary().items():
             print(f"{name:<9} {summary['curves']:>3} curves x {summary['control_points_per_curve']} control points, "
                   f"worst {summary['worst_max_deviation_mm']:.3f} mm (tolerance {summary['tolerance_mm']} mm, "
                   f"{summary['within_tolerance']}/{summary['curves']} within)")
         print(f"curves written to {args.out}")
+    elif args.command == "segment":
+        bone = pipeline.run_segment(args.ct, args.out)
+        print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
     elif args.command == "demo":
         pipeline.run_demo(args.out, config=config)
         print(f"demo outputs written to {args.out}")

@@ -23,6 +23,7 @@ from .curves.contours import ContourSet, bone_coordinates, contour_curves
 from .io.cad import compound, frame_shapes, write_iges, write_step
 from .io.output import staged_output
 from .mesh.bone_mesh import BoneMesh
+from .errors import InputError
 from .mesh.intake import Units, load_bone
 
 log = logging.getLogger("bonecad")
@@ -65,6 +66,43 @@ def mesh_summary(bone: BoneMesh) -> dict:
     }
 
 
+VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".ima")
+
+
+def is_volume(path: str | Path) -> bool:
+    """True for a CT volume (a DICOM folder or a volume file), False for a mesh file."""
+    path = Path(path)
+    return path.is_dir() or path.name.lower().endswith(VOLUME_SUFFIXES)
+
+
+def load_input(path: str | Path, *, units: Units = "auto", config: dict | None = None) -> BoneMesh:
+    """The tibia mesh of an input: read a mesh file, or segment a CT volume (DICOM folder, NIfTI, NRRD, MHA)."""
+    if is_volume(path):
+        from .imaging import segment_bone
+        from .io.volume import read_volume
+
+        log.info("reading CT volume %s", path)
+        volume = read_volume(path)
+        log.info("segmenting bone (%d x %d x %d voxels)", *volume.hu.shape[::-1])
+        return segment_bone(volume)
+    return load_bone(path, units=units, config=config)
+
+
+def run_segment(path: str | Path, out_mesh: str | Path) -> BoneMesh:
+    """``bonecad segment``: the tibia's surface from a CT volume, written as a mesh file (STL, PLY, OBJ, OFF)."""
+    from .imaging import segment_bone
+    from .io.output import staged_file
+    from .io.volume import read_volume
+
+    out_mesh = Path(out_mesh)
+    if out_mesh.suffix.lower() not in (".stl", ".ply", ".obj", ".off"):
+        raise InputError(f"unsupported mesh format '{out_mesh.suffix}' (use .stl, .ply, .obj or .off)", out_mesh)
+    bone = segment_bone(read_volume(path))
+    with staged_file(out_mesh) as tmp:
+        bone.to_trimesh().export(tmp, file_type=out_mesh.suffix[1:].lower())
+    return bone
+
+
 def inspect(path: str | Path, *, units: Units = "auto", config: dict | None = None) -> dict:
     """What ``bonecad inspect`` prints: the input summary, the tibia's side and frame figures."""
     config = config or load_config()
@@ -75,29 +113,6 @@ def inspect(path: str | Path, *, units: Units = "auto", config: dict | None = No
     summary["mechanical_axis_length_mm"] = round(frame.mechanical_length_mm, 2)
     summary["plateau_semi_axes_mm"] = np.round(frame.plateau.semi_axes_mm, 2).tolist()
     return summary
-
-
-def run_frame(
-    bone: BoneMesh,
-    out_dir: str | Path,
-    *,
-    config: dict | None = None,
-    distal_boundary_mm: float | None = None,
-    proximal_boundary_mm: float | None = None,
-) -> AnatomicalFrame:
-    """``bonecad frame``: frame.json and curves.step (reference entities) in ``out_dir``."""
-    config = config or load_config()
-    timings = Timings()
-    with staged_output(out_dir) as stage_dir:
-        with timings.stage("anatomical frame"):
-            frame = anatomical_frame(
-                bone, config=config, distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm
-            )
-        with timings.stage("reference entities to STEP"):
-            write_step(compound(frame_shapes(frame), "reference_entities"), stage_dir / "curves.step")
-        data = {"input": mesh_summary(bone), **frame.as_dict(), "timings_s": dict(timings)}
-        write_json(data, stage_dir / "frame.json")
-    return frame
 
 
 def curve_shapes(contours: ContourSet) -> list:
@@ -140,50 +155,72 @@ def contours_dict(contours: ContourSet) -> dict:
     }
 
 
-def run_curves(
+def run_stages(
     bone: BoneMesh,
     out_dir: str | Path,
     *,
+    until: str = "curves",
     config: dict | None = None,
     distal_boundary_mm: float | None = None,
     proximal_boundary_mm: float | None = None,
-) -> ContourSet:
-    """``bonecad curves``: curves.step/.iges (curves + reference entities), curves.json, curves.png, frame.json."""
+) -> tuple[AnatomicalFrame, ContourSet | None]:
+    """Run the stages up to ``until`` ("frame" or "curves") and write their files into ``out_dir``.
+
+    frame: frame.json and curves.step (the reference entities);
+    curves: also the contour curves in curves.step, curves.iges, curves.json and curves.png.
+    """
     from .curves.plot import curves_png
 
+    if until not in ("frame", "curves"):
+        raise ValueError(f"until must be 'frame' or 'curves', got {until!r}")
     config = config or load_config()
     timings = Timings()
+    contours = None
     with staged_output(out_dir) as stage_dir:
         with timings.stage("anatomical frame"):
             frame = anatomical_frame(
                 bone, config=config, distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm
             )
-        with timings.stage("contour curves"):
-            contours = contour_curves(bone, frame, config=config)
-        with timings.stage("curves to STEP and IGES"):
-            shapes = compound([compound(curve_shapes(contours), "contour_curves"),
-                               compound(frame_shapes(frame), "reference_entities")], "bonecad_curves")
-            write_step(shapes, stage_dir / "curves.step")
-            write_iges(shapes, stage_dir / "curves.iges")
-        with timings.stage("curves figure"):
-            vertices, faces = bone_coordinates(bone, frame)
-            curves_png(stage_dir / "curves.png", vertices, faces, contours)
+        entities = compound(frame_shapes(frame), "reference_entities")
+        if until == "frame":
+            with timings.stage("reference entities to STEP"):
+                write_step(entities, stage_dir / "curves.step")
+        else:
+            with timings.stage("contour curves"):
+                contours = contour_curves(bone, frame, config=config)
+            with timings.stage("curves to STEP and IGES"):
+                shapes = compound([compound(curve_shapes(contours), "contour_curves"), entities], "bonecad_curves")
+                write_step(shapes, stage_dir / "curves.step")
+                write_iges(shapes, stage_dir / "curves.iges")
+            with timings.stage("curves figure"):
+                vertices, faces = bone_coordinates(bone, frame)
+                curves_png(stage_dir / "curves.png", vertices, faces, contours)
+            write_json({**contours_dict(contours), "timings_s": dict(timings)}, stage_dir / "curves.json")
+            for name, summary in contours.summary().items():
+                log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name,
+                         summary["curves"], summary["worst_max_deviation_mm"], summary["tolerance_mm"],
+                         summary["within_tolerance"])
         write_json({"input": mesh_summary(bone), **frame.as_dict(), "timings_s": dict(timings)}, stage_dir / "frame.json")
-        write_json({**contours_dict(contours), "timings_s": dict(timings)}, stage_dir / "curves.json")
-    for name, summary in contours.summary().items():
-        log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name, summary["curves"],
-                 summary["worst_max_deviation_mm"], summary["tolerance_mm"], summary["within_tolerance"])
-    return contours
+    return frame, contours
 
 
 def run_demo(out_dir: str | Path, *, config: dict | None = None) -> None:
-    """``bonecad demo``: the phantom tibia through every stage available, outputs in ``out_dir``."""
+    """``bonecad demo``: the embedded phantom as a real case starts, from its CT, through every stage.
+
+    Writes the phantom's mesh (phantom.stl) and synthetic CT (phantom_ct.nii.gz),
+    then runs the pipeline on that CT.
+    """
+    from .imaging import mesh_to_ct
     from .imaging.phantom_tibia import phantom_tibia
+    from .io.volume import write_nifti
 
     config = config or load_config()
     timings = Timings()
     with staged_output(out_dir) as stage_dir:
-        with timings.stage("phantom tibia"):
-            bone = phantom_tibia()
-            bone.to_trimesh().export(stage_dir / "phantom.stl")
-        run_curves(bone, stage_dir, config=config)
+        with timings.stage("phantom tibia and its CT"):
+            phantom = phantom_tibia()
+            phantom.to_trimesh().export(stage_dir / "phantom.stl")
+            ct_path = write_nifti(mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=0.8), stage_dir / "phantom_ct.nii.gz")
+        with timings.stage("segmentation of the phantom CT"):
+            bone = load_input(ct_path, config=config)
+        run_stages(bone, stage_dir, until="curves", config=config)

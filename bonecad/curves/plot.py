@@ -40,5 +40,5 @@ def curves_png(path: str | Path, vertices: np.ndarray, faces: np.ndarray, contou
     axes[0].set_ylabel("mm above the plafond centre")
     handles = [plt.Line2D([], [], color=c, label=r) for r, c in REGION_COLOURS.items()]
     fig.legend(handles=handles, loc="lower center", ncol=3)
-    fig.suptitle("Contour curves (distal and proximal half-planes, shaft sections)")
+    fig.suptitle("Contour curves")
     return _save(fig, plt, path)

@@ -1,0 +1,73 @@
+"""Analyse one CAD model of a bone: deviation both ways, seam and knot continuity, figures.
+
+The glue between a model stage and the report: regions come from the
+anatomical frame, views from its axes, and every figure is written into the
+caller's (staged) output folder.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..anatomy.frame import AnatomicalFrame
+from ..mesh.bone_mesh import BoneMesh
+from .continuity import knot_continuity, seam_continuity
+from .deviation import shape_deviation
+from .render import deviation_map_png, histogram_png, zebra_png
+from .report import ModelReport
+from .tessellation import tessellate
+
+log = logging.getLogger("bonecad")
+
+
+def region_labels(frame: AnatomicalFrame):
+    """A function labelling scanner points 'distal', 'shaft' or 'proximal' by their height on the axis."""
+
+    def labels(points: np.ndarray) -> np.ndarray:
+        height = frame.to_bone(points)[:, 2]
+        out = np.full(len(points), "shaft", dtype=object)
+        out[height < frame.distal_boundary_mm] = "distal"
+        out[height > frame.proximal_boundary_mm] = "proximal"
+        return out
+
+    return labels
+
+
+def analyse_model(
+    name: str,
+    shape,
+    bone: BoneMesh,
+    frame: AnatomicalFrame,
+    out_dir: Path,
+    *,
+    info: dict,
+    sample_points: int | None = None,
+) -> ModelReport:
+    """Deviation, continuity and figures (``{name}_deviation.png``, ``{name}_histogram.png``,
+    ``{name}_zebra.png``) of ``shape`` (a TopoDS_Shape in scanner mm) against ``bone``."""
+    view_frame = frame.axes.T  # columns: lateral, anterior, proximal
+    tess = tessellate(shape)
+    deviation = shape_deviation(
+        bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=sample_points, tessellation=tess
+    )
+    continuity = seam_continuity(shape)
+    knots = knot_continuity(shape)
+    figures = {
+        "deviation": deviation_map_png(
+            out_dir / f"{name}_deviation.png", bone.vertices, bone.faces, deviation.vertex_deviation_mm, view_frame,
+            title=f"{name}: deviation of the mesh from the CAD model, mm",
+        ),
+        "histogram": histogram_png(
+            out_dir / f"{name}_histogram.png",
+            {"whole bone": deviation.mesh_to_cad.histogram,
+             **deviation.mesh_to_cad.region_histograms},
+            title=f"{name}: share of surface per deviation band",
+        ),
+        "zebra": zebra_png(out_dir / f"{name}_zebra.png", tess, view_frame, title=f"{name}: zebra (reflection lines)"),
+    }
+    stats = deviation.mesh_to_cad.stats
+    log.info("%s: RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", name, stats.rms_mm, stats.max_outside_mm,
+             stats.max_inside_mm)
+    return ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots, figures=figures)
