@@ -176,3 +176,21 @@ def test_real_mesh_round_trip_at_half_mm(path):
     """TLEM2: its fibula touches the tibia (0.17 mm gap), the hardest of the five; about 15 s."""
     d = round_trip(trimesh.load(path), voxel_mm=0.5).distance
     assert d.rms_mm < 0.3 and d.centroid_shift_mm < 0.5
+
+
+def test_segmentation_follows_a_sheared_grid(bone, bone_ct):
+    """Gantry tilt: the same voxels on a sheared grid give the bone sheared the same way."""
+    affine = bone_ct.affine.copy()
+    affine[:3, 2] += np.array([0.0, np.tan(np.radians(12.0)), 0.0]) * bone_ct.spacing_mm[2]
+    tilted = CTVolume(hu=bone_ct.hu, affine=affine, source="tilted")
+    moved = bone.copy()
+    moved.apply_transform(affine @ np.linalg.inv(bone_ct.affine))
+    d = surface_distance(segment_bone(tilted).to_trimesh(), moved)
+    assert d.rms_mm < 0.15 and d.centroid_shift_mm < 0.1
+
+
+def test_a_cortex_as_thin_as_a_voxel_still_gives_a_filled_bone(bone):
+    ct = mesh_to_ct(bone.vertices, bone.faces, voxel_mm=1.0, cortex_mm=1.0, seed=6)
+    result = segment_bone(ct).to_trimesh()
+    assert result.volume == pytest.approx(bone.volume, rel=0.02)  # no marrow cavity left inside
+    assert surface_distance(result, bone).rms_mm < 0.2

@@ -61,12 +61,18 @@ def mesh_to_ct(
     bone = occupancy(vertices, faces, low, voxel_mm, shape)
 
     solid = bone >= 0.5
-    marrow = _coarse_distance(solid, voxel_mm, inside=True) > cortex_mm
+    # Marrow share of each voxel: 0 within the cortex, rising to 1 over one voxel
+    # (a partial-volume inner boundary, so a thin cortex has no see-through gaps).
+    depth = _coarse_distance(solid, voxel_mm, inside=True)
+    marrow = np.clip((depth - np.float32(cortex_mm)) / np.float32(voxel_mm), 0.0, 1.0)
+    del depth
     near = _coarse_distance(solid, voxel_mm, inside=False) <= soft_tissue_mm
     hu = np.where(near, np.float32(SOFT_TISSUE_HU), np.float32(AIR_HU))
-    hu += bone * (np.float32(CORTICAL_HU) - hu)
-    hu[marrow] = MARROW_HU
-    del solid, marrow, near, bone
+    del near, solid
+    inside = np.float32(CORTICAL_HU) + marrow * np.float32(MARROW_HU - CORTICAL_HU)
+    del marrow
+    hu += bone * (inside - hu)
+    del inside, bone
     if blur_mm > 0:
         ndimage.gaussian_filter(hu, sigma=blur_mm / voxel_mm, output=hu, mode="nearest")
     if noise_hu > 0:
@@ -93,7 +99,10 @@ def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _coarse_distance(mask: np.ndarray, voxel_mm: float, *, inside: bool) -> np.ndarray:
-    """Distance (mm) to the mask's boundary, from inside or outside, on a grid of about 1 mm, upsampled."""
+    """Distance (mm) between voxel centres and the mask's boundary, from inside or outside.
+
+    Computed on a grid of about 1 mm and interpolated back to the mask's grid.
+    """
     factor = max(1, int(round(1.0 / voxel_mm)))
     pad = [(0, (-n) % factor) for n in mask.shape]
     padded = np.pad(mask, pad, mode="edge")
@@ -103,8 +112,9 @@ def _coarse_distance(mask: np.ndarray, voxel_mm: float, *, inside: bool) -> np.n
     # Inside distances use blocks wholly inside; outside distances blocks touching the bone.
     coarse = blocks.all(axis=(1, 3, 5)) if inside else ~blocks.any(axis=(1, 3, 5))
     dist = ndimage.distance_transform_edt(coarse, sampling=factor * voxel_mm).astype(np.float32)
-    for axis in range(3):
-        dist = np.repeat(dist, factor, axis=axis)
+    if factor > 1:
+        # Linear interpolation between block centres (grid_mode: blocks tile the fine grid).
+        dist = ndimage.zoom(dist, factor, order=1, grid_mode=True, mode="nearest")
     return dist[: mask.shape[0], : mask.shape[1], : mask.shape[2]]
 
 

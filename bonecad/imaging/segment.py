@@ -39,6 +39,9 @@ _BESIDE_OVERLAP = 0.5
 _SPLIT_ERODE_MM = 3.0
 _SPLIT_PART_SHARE = 0.03
 _SPLIT_LENGTH_SHARE = 0.4
+# The tibia's mask grows this many voxels into voxels above half-way between
+# soft tissue and the surface level, to close a thin cortex.
+_GROW_VOXELS = 2
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,11 @@ class _Body:
 
 def surface_level(volume: CTVolume) -> float:
     """Automatic bone surface level, HU: half-way between cortical bone and soft tissue."""
+    return _levels(volume)[0]
+
+
+def _levels(volume: CTVolume) -> tuple[float, float]:
+    """(surface level, soft tissue value), HU, estimated from a 1-in-8 sample of the voxels."""
     hu = volume.hu[::2, ::2, ::2]
     bone = hu[hu > _CORTICAL_MIN_HU]
     if bone.size == 0:
@@ -61,7 +69,7 @@ def surface_level(volume: CTVolume) -> float:
     cortical = float(np.percentile(bone, 75))
     soft = hu[(hu > -200) & (hu < 200)]
     tissue = float(np.median(soft)) if soft.size else 0.0
-    return float(np.clip(0.5 * (cortical + tissue), _LEVEL_MIN, _LEVEL_MAX))
+    return float(np.clip(0.5 * (cortical + tissue), _LEVEL_MIN, _LEVEL_MAX)), tissue
 
 
 def segment_bone(
@@ -83,7 +91,8 @@ def segment_bone(
     reaches the border of the volume (the volume holds only part of it).
     """
     path = volume.source or None
-    level = surface_level(volume) if level_hu is None else float(level_hu)
+    auto_level, tissue = _levels(volume)
+    level = auto_level if level_hu is None else float(level_hu)
     mask = volume.hu >= level
     box = _bounding_box(mask)
     if box is None:
@@ -91,30 +100,36 @@ def segment_bone(
     mask = mask[box]
     offset = np.array([s.start for s in box])  # (k, j, i)
     labels, count = ndimage.label(mask)
+    del mask
     bodies = _bodies(labels, count, offset, volume)
     if _split_touching(labels, count, bodies, volume):
         bodies = _bodies(labels, int(labels.max()), offset, volume)
     tibia, roles = _pick_tibia(bodies, path)
     _check_whole(tibia, offset, volume, path)
 
-    # The tibia's own mask, padded by 2 voxels, closed and filled.
+    # The tibia's box in the volume, padded by 2 voxels (HU beyond the volume: far below the level).
     sub = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in tibia.slices)
-    own = labels[sub] == tibia.label
+    own = np.pad(labels[sub] == tibia.label, 2)
     other = np.pad((labels[sub] != tibia.label) & (labels[sub] > 0), 2)
-    del labels, mask
-    sub_offset = offset + np.array([s.start for s in sub])
-    own = np.pad(own, 2)
+    del labels
+    sub_offset = offset + np.array([s.start for s in sub]) - 2
+    field = np.full(own.shape, level - 1000.0, dtype=np.float32)
+    source = tuple(slice(o, o + n) for o, n in zip(sub_offset, own.shape))
+    clipped = tuple(slice(max(s.start, 0), min(s.stop, n)) for s, n in zip(source, volume.shape))
+    dest = tuple(slice(c.start - s.start, c.stop - s.start) for c, s in zip(clipped, source))
+    field[dest] = volume.hu[clipped]
+
+    # Grow the tibia 2 voxels into voxels above half-way between tissue and the
+    # level (closes a thin, partial-volumed cortex), close, fill the marrow.
+    weak = (field >= 0.5 * (level + tissue)) & ~other
+    own |= ndimage.binary_dilation(own, iterations=_GROW_VOXELS, mask=weak)
+    del weak
     own = ndimage.binary_closing(own, structure=ndimage.generate_binary_structure(3, 1), iterations=1)
     own = _fill_holes(own)
     own = _fill_cross_sections(own, tibia.axis, volume)
 
     # Grey values for marching cubes: the interior lifted above the level (marrow
     # filled), everything away from the tibia pushed below it (no fibula).
-    field = np.full(own.shape, level - 1000.0, dtype=np.float32)
-    source = tuple(slice(o - 2, o - 2 + n) for o, n in zip(sub_offset, own.shape))
-    clipped = tuple(slice(max(s.start, 0), min(s.stop, n)) for s, n in zip(source, volume.shape))
-    dest = tuple(slice(c.start - s.start, c.stop - s.start) for c, s in zip(clipped, source))
-    field[dest] = volume.hu[clipped]
     interior = ndimage.binary_erosion(own)
     field[interior] = np.maximum(field[interior], level + 500.0)
     near = ndimage.binary_dilation(own, iterations=2)
@@ -125,7 +140,7 @@ def segment_bone(
     field[[0, -1], :, :] = field[:, [0, -1], :] = field[:, :, [0, -1]] = level - 1000.0
     del interior, near, own, other, cut
 
-    mesh = _surface(field, level, sub_offset - 2, volume)
+    mesh = _surface(field, level, sub_offset, volume)
     del field
     mesh = _largest_part(mesh)
     if smoothing_iterations > 0:
