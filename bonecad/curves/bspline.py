@@ -9,6 +9,7 @@ open curves are placed by the averaging rule (eq. 9.68-9.69).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy import sparse
@@ -32,21 +33,19 @@ class BSplineCurve:
     degree: int = 3
     periodic: bool = False
 
-    def _scipy(self, nu: int = 0) -> BSpline:
+    @cached_property
+    def _spline(self) -> BSpline:
         if not self.periodic:
-            return BSpline(self.knots, self.control_points, self.degree).derivative(nu) if nu else BSpline(
-                self.knots, self.control_points, self.degree
-            )
+            return BSpline(self.knots, self.control_points, self.degree)
         t, c = _periodic_extension(self.control_points, self.degree)
-        spline = BSpline(t, c, self.degree, extrapolate="periodic")
-        return spline.derivative(nu) if nu else spline
+        return BSpline(t, c, self.degree, extrapolate="periodic")
 
     def __call__(self, u: np.ndarray, nu: int = 0) -> np.ndarray:
         """(m, 3) points (or derivatives of order ``nu``) at parameters ``u`` in [0, 1]."""
         u = np.asarray(u, dtype=np.float64)
         if self.periodic:
             u = np.mod(u, 1.0)
-        return self._scipy(nu)(u)
+        return self._spline(u, nu=nu)
 
     @property
     def count(self) -> int:

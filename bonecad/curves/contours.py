@@ -24,7 +24,7 @@ from ..anatomy.frame import AnatomicalFrame
 from ..config import load_config
 from ..errors import FitError
 from ..mesh.bone_mesh import BoneMesh
-from ..mesh.sections import section_mesh
+from ..mesh.sections import LevelSections, section_mesh
 from .bspline import BSplineCurve, fit_curve
 
 REGIONS = ("distal", "shaft", "proximal")
@@ -181,10 +181,9 @@ def _end_point(loop, r, z, i, j, apex_radius, boundary_z, towards):
     return _crossing(loop[i], loop[j], fr_i, fr_j), "apex"
 
 
-def _closed_section(vertices, faces, level: float, centre_xy: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def _closed_section(levels: LevelSections, level: float, centre_xy: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """Outer loop at height ``level``, starting on the ray from ``centre_xy`` towards +x (lateral)."""
-    section = section_mesh(vertices, faces, np.array([0.0, 0.0, level]), np.array([0.0, 0.0, 1.0]))
-    loops = section.loops()
+    loops = levels.at(level).loops()
     if not loops:
         raise FitError(f"no shaft section at {level:.1f} mm")
     notes = [f"dropped {len(loops) - 1} extra section loop(s)"] if len(loops) > 1 else []
@@ -218,8 +217,7 @@ def _radial_profile(loop: np.ndarray, centre_xy: np.ndarray, angles: np.ndarray)
 
 
 def choose_shaft_levels(
-    vertices,
-    faces,
+    levels: LevelSections,
     low: float,
     high: float,
     centre_at,
@@ -243,7 +241,7 @@ def choose_shaft_levels(
     profiles = np.empty((len(fine), len(angles)))
     for k, level in enumerate(fine):
         centre = centre_at(level)
-        loop, _ = _closed_section(vertices, faces, level, centre)
+        loop, _ = _closed_section(levels, level, centre)
         profiles[k] = _radial_profile(loop, centre, angles)
     spectrum = np.fft.rfft(profiles, axis=1)
     spectrum[:, harmonics + 1 :] = 0.0
@@ -300,13 +298,14 @@ def contour_curves(bone: BoneMesh, frame: AnatomicalFrame, *, config: dict | Non
 
     shaft_tol = float(cc["shaft_tolerance_mm"])
     count = int(cc["shaft_control_points"])
+    stack = LevelSections(vertices, faces, np.zeros(3), z_axis)
     levels, predicted, worst = choose_shaft_levels(
-        vertices, faces, z_d, z_p, centre_at, shaft_tol, count // 2, float(cc["shaft_min_spacing_mm"]),
+        stack, z_d, z_p, centre_at, shaft_tol, count // 2, float(cc["shaft_min_spacing_mm"]),
         int(cc["shaft_sections"]),
     )
     shaft = []
     for i, level in enumerate(levels):
-        raw, notes = _closed_section(vertices, faces, float(level), centre_at(level))
+        raw, notes = _closed_section(stack, float(level), centre_at(level))
         fit = fit_curve(raw, count, periodic=True, degree=degree)
         if fit.outliers:
             notes.append(f"bridged {fit.outliers} outlying section point(s) (peaks from holes or artefacts)")

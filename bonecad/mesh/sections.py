@@ -120,12 +120,28 @@ def _chain(edge_keys: np.ndarray) -> list[np.ndarray]:
     return loops
 
 
+class LevelSections:
+    """Sections of one mesh perpendicular to one axis at many levels, each touching only the faces it crosses."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, axis: np.ndarray):
+        self.vertices, self.faces = vertices, faces
+        self.origin = np.asarray(origin, dtype=np.float64)
+        self.axis = axis / np.linalg.norm(axis)
+        face_heights = ((vertices - self.origin) @ self.axis)[faces]
+        self._low, self._high = face_heights.min(axis=1), face_heights.max(axis=1)
+
+    def at(self, level: float) -> Section:
+        """The section at ``level`` mm along the axis from the origin."""
+        crossing = (self._low <= level) & (self._high >= level)
+        return section_mesh(self.vertices, self.faces[crossing], self.origin + level * self.axis, self.axis)
+
+
 def section_stack(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, axis: np.ndarray, levels: np.ndarray):
     """Areas (k,) and centroids (k, 3) of sections perpendicular to ``axis`` at ``levels`` (mm from origin)."""
-    axis = axis / np.linalg.norm(axis)
+    stack = LevelSections(vertices, faces, origin, axis)
     areas = np.empty(len(levels))
     centroids = np.empty((len(levels), 3))
     for i, level in enumerate(levels):
-        sec = section_mesh(vertices, faces, origin + level * axis, axis)
+        sec = stack.at(float(level))
         areas[i], centroids[i] = sec.area, sec.centroid
     return areas, centroids
