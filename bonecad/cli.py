@@ -89,6 +89,20 @@ def build_parser() -> argparse.ArgumentParser:
     _add_boundaries(p)
     _add_common(p)
 
+    p = sub.add_parser("reconstruct", help="mesh or CT -> NURBS and T-spline CAD models, analysis, report",
+                       description="The whole pipeline: frame, contour curves, the NURBS baseline and/or the "
+                       "T-spline model, their deviation/continuity/zebra analysis. Writes nurbs.step/.iges, "
+                       "tspline.step/.iges/.json, curves.step/.iges/.json, frame.json, report.json, report.html "
+                       "and PNG figures into --out.")
+    p.add_argument("input", type=Path, help="mesh file (STL, OBJ, PLY, OFF) or CT volume (DICOM folder, .nii, "
+                   ".nii.gz, .nrrd, .mha)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--model", choices=["nurbs", "tspline", "both"], default="both", help="which models to build")
+    p.add_argument("--apex-fill", choices=["ring", "patch"], default=None,
+                   help="NURBS apex holes: a ring of lines lofted flat, or a fill-hole patch (default from config)")
+    _add_boundaries(p)
+    _add_common(p)
+
     p = sub.add_parser("segment", help="CT volume -> tibia surface mesh",
                        description="Read a CT volume (DICOM folder, .nii/.nii.gz, .nrrd, .mha), segment the "
                        "tibia (cortical bone threshold, marrow filled, fibula/femur/talus separated) and write its "
@@ -147,22 +161,32 @@ def _run(args: argparse.Namespace) -> None:
         from .mesh.intake import load_bone
 
         bone = load_bone(args.mesh, units=args.units, config=config)
-        frame, _ = pipeline.run_stages(bone, args.out, until="frame", config=config,
-                                       distal_boundary_mm=args.distal_boundary,
-                                       proximal_boundary_mm=args.proximal_boundary)
-        print(f"{frame.side} tibia; frame.json and curves.step written to {args.out}")
+        result = pipeline.reconstruct_bone(bone, args.out, until="frame", config=config,
+                                           distal_boundary_mm=args.distal_boundary,
+                                           proximal_boundary_mm=args.proximal_boundary)
+        print(f"{result.frame.side} tibia; frame.json and curves.step written to {args.out}")
     elif args.command == "curves":
         from .mesh.intake import load_bone
 
         bone = load_bone(args.mesh, units=args.units, config=config)
-        _, contours = pipeline.run_stages(bone, args.out, until="curves", config=config,
-                                          distal_boundary_mm=args.distal_boundary,
-                                          proximal_boundary_mm=args.proximal_boundary)
+        contours = pipeline.reconstruct_bone(bone, args.out, until="curves", config=config,
+                                             distal_boundary_mm=args.distal_boundary,
+                                             proximal_boundary_mm=args.proximal_boundary).contours
         for name, summary in contours.summary().items():
             print(f"{name:<9} {summary['curves']:>3} curves x {summary['control_points_per_curve']} control points, "
                   f"worst {summary['worst_max_deviation_mm']:.3f} mm (tolerance {summary['tolerance_mm']} mm, "
                   f"{summary['within_tolerance']}/{summary['curves']} within)")
         print(f"curves written to {args.out}")
+    elif args.command == "reconstruct":
+        models = ("nurbs", "tspline") if args.model == "both" else (args.model,)
+        result = pipeline.reconstruct(args.input, args.out, models=models, apex_fill=args.apex_fill,
+                                      units=args.units, config=config, distal_boundary_mm=args.distal_boundary,
+                                      proximal_boundary_mm=args.proximal_boundary)
+        for name, report in result.reports.items():
+            stats = report.deviation.mesh_to_cad.stats
+            print(f"{name:<8} {report.info.get('faces')} faces, {report.info.get('control_points')} control points, "
+                  f"deviation RMS {stats.rms_mm:.3f} mm, worst {max(stats.max_outside_mm, stats.max_inside_mm):.3f} mm")
+        print(f"models and report written to {args.out} ({sum(result.timings_s.values()):.1f} s)")
     elif args.command == "segment":
         bone = pipeline.run_segment(args.ct, args.out)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")

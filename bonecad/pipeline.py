@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import json
 import logging
+import tempfile
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -155,53 +157,155 @@ def contours_dict(contours: ContourSet) -> dict:
     }
 
 
-def run_stages(
+STAGES = ("frame", "curves", "models")
+MODELS = ("nurbs", "tspline")
+
+
+@dataclass
+class Reconstruction:
+    """Everything one run produced: the stages' results, the per-model analysis, timings and files.
+
+    ``models`` maps "nurbs"/"tspline" to the model objects; ``reports`` to their
+    analysis (deviation, continuity, figures); ``files`` names the outputs in ``out_dir``.
+    """
+
+    bone: BoneMesh
+    frame: AnatomicalFrame
+    contours: ContourSet | None = None
+    models: dict = field(default_factory=dict)
+    reports: dict = field(default_factory=dict)
+    timings_s: dict = field(default_factory=dict)
+    out_dir: Path | None = None
+    files: list[str] = field(default_factory=list)
+
+    def figure(self, name: str) -> Path:
+        """Path of an output figure, e.g. ``figure("nurbs_zebra.png")``."""
+        if self.out_dir is None or name not in self.files:
+            raise InputError(f"no figure {name!r}; this run wrote {self.files}")
+        return self.out_dir / name
+
+
+def reconstruct_bone(
     bone: BoneMesh,
     out_dir: str | Path,
     *,
-    until: str = "curves",
+    until: str = "models",
+    models: tuple[str, ...] = MODELS,
+    apex_fill: str | None = None,
     config: dict | None = None,
     distal_boundary_mm: float | None = None,
     proximal_boundary_mm: float | None = None,
-) -> tuple[AnatomicalFrame, ContourSet | None]:
-    """Run the stages up to ``until`` ("frame" or "curves") and write their files into ``out_dir``.
+    timings: Timings | None = None,
+) -> Reconstruction:
+    """Run the stages from the frame up to ``until`` and write their files into ``out_dir``.
 
     frame: frame.json and curves.step (the reference entities);
-    curves: also the contour curves in curves.step, curves.iges, curves.json and curves.png.
+    curves: also the contour curves in curves.step, curves.iges, curves.json and curves.png;
+    models: also each model's STEP/IGES (nurbs.*, tspline.*), its analysis figures,
+    report.json and report.html.
     """
     from .curves.plot import curves_png
 
-    if until not in ("frame", "curves"):
-        raise ValueError(f"until must be 'frame' or 'curves', got {until!r}")
+    if until not in STAGES:
+        raise ValueError(f"until must be one of {STAGES}, got {until!r}")
+    unknown = set(models) - set(MODELS)
+    if unknown or not models:
+        raise InputError(f"models must be among {MODELS}, got {list(models)}")
     config = config or load_config()
-    timings = Timings()
-    contours = None
+    timings = timings if timings is not None else Timings()
+    out_dir = Path(out_dir)
     with staged_output(out_dir) as stage_dir:
         with timings.stage("anatomical frame"):
             frame = anatomical_frame(
                 bone, config=config, distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm
             )
+        result = Reconstruction(bone=bone, frame=frame, timings_s=timings, out_dir=out_dir)
         entities = compound(frame_shapes(frame), "reference_entities")
         if until == "frame":
             with timings.stage("reference entities to STEP"):
                 write_step(entities, stage_dir / "curves.step")
         else:
             with timings.stage("contour curves"):
-                contours = contour_curves(bone, frame, config=config)
+                result.contours = contour_curves(bone, frame, config=config)
             with timings.stage("curves to STEP and IGES"):
-                shapes = compound([compound(curve_shapes(contours), "contour_curves"), entities], "bonecad_curves")
+                shapes = compound([compound(curve_shapes(result.contours), "contour_curves"), entities], "bonecad_curves")
                 write_step(shapes, stage_dir / "curves.step")
                 write_iges(shapes, stage_dir / "curves.iges")
             with timings.stage("curves figure"):
                 vertices, faces = bone_coordinates(bone, frame)
-                curves_png(stage_dir / "curves.png", vertices, faces, contours)
-            write_json({**contours_dict(contours), "timings_s": dict(timings)}, stage_dir / "curves.json")
-            for name, summary in contours.summary().items():
+                curves_png(stage_dir / "curves.png", vertices, faces, result.contours)
+            write_json(contours_dict(result.contours), stage_dir / "curves.json")
+            for name, summary in result.contours.summary().items():
                 log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name,
                          summary["curves"], summary["worst_max_deviation_mm"], summary["tolerance_mm"],
                          summary["within_tolerance"])
+        if until == "models":
+            _build_models(result, stage_dir, models, apex_fill, config, timings)
         write_json({"input": mesh_summary(bone), **frame.as_dict(), "timings_s": dict(timings)}, stage_dir / "frame.json")
-    return frame, contours
+        result.files = sorted(p.name for p in stage_dir.iterdir())
+    result.timings_s = dict(timings)
+    return result
+
+
+def _build_models(result: Reconstruction, stage_dir: Path, models, apex_fill, config, timings: Timings) -> None:
+    """Each requested model, its exports and analysis, then report.json/report.html."""
+    from .analysis.model import analyse_model
+    from .analysis.report import write_report
+
+    bone, frame, contours = result.bone, result.frame, result.contours
+    if "nurbs" in models:
+        from .nurbs.model import build_nurbs, write_nurbs
+
+        with timings.stage("NURBS model"):
+            nurbs = build_nurbs(contours, apex_fill=apex_fill, config=config)
+            write_nurbs(nurbs, stage_dir)
+        result.models["nurbs"] = nurbs
+        with timings.stage("NURBS analysis"):
+            result.reports["nurbs"] = analyse_model("nurbs", nurbs.shape, bone, frame, stage_dir, info=nurbs.summary())
+    if "tspline" in models:
+        from .tspline_model.model import build_tspline_model, write_tspline
+
+        with timings.stage("T-spline model"):
+            tspline = build_tspline_model(bone, frame, contours, config=config)
+            write_tspline(tspline, stage_dir)
+        result.models["tspline"] = tspline
+        with timings.stage("T-spline analysis"):
+            result.reports["tspline"] = analyse_model(
+                "tspline", tspline.shape, bone, frame, stage_dir, info=tspline.summary()
+            )
+    with timings.stage("report"):
+        write_report(
+            stage_dir,
+            input_summary={**mesh_summary(bone), "side": frame.side},
+            frame=frame.as_dict(),
+            models=[result.reports[m] for m in MODELS if m in result.reports],
+            timings_s=dict(timings),
+        )
+
+
+def reconstruct(
+    source: str | Path,
+    out_dir: str | Path | None = None,
+    *,
+    until: str = "models",
+    models: tuple[str, ...] = MODELS,
+    apex_fill: str | None = None,
+    units: Units = "auto",
+    config: dict | None = None,
+    distal_boundary_mm: float | None = None,
+    proximal_boundary_mm: float | None = None,
+) -> Reconstruction:
+    """The whole pipeline on a mesh file or CT volume; outputs in ``out_dir`` (a new temporary folder if None)."""
+    config = config or load_config()
+    timings = Timings()
+    if out_dir is None:
+        out_dir = Path(tempfile.mkdtemp(prefix="bonecad-"))
+    with timings.stage("input"):
+        bone = load_input(source, units=units, config=config)
+    return reconstruct_bone(
+        bone, out_dir, until=until, models=models, apex_fill=apex_fill, config=config,
+        distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm, timings=timings,
+    )
 
 
 def run_demo(out_dir: str | Path, *, config: dict | None = None) -> None:
@@ -223,4 +327,4 @@ def run_demo(out_dir: str | Path, *, config: dict | None = None) -> None:
             ct_path = write_nifti(mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=0.8), stage_dir / "phantom_ct.nii.gz")
         with timings.stage("segmentation of the phantom CT"):
             bone = load_input(ct_path, config=config)
-        run_stages(bone, stage_dir, until="curves", config=config)
+        reconstruct_bone(bone, stage_dir, config=config, timings=timings)
