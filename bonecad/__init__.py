@@ -15,6 +15,7 @@ from .errors import BonecadError, FitError, InputError, KernelError
 from .imaging.phantom_tibia import TibiaParameters, phantom_tibia
 from .mesh.bone_mesh import BoneMesh
 from .mesh.intake import load_bone, prepare_bone
+from .pipeline import Reconstruction, reconstruct
 
 __all__ = [
     "AnatomicalFrame",
@@ -29,4 +30,6 @@ __all__ = [
     "load_config",
     "phantom_tibia",
     "prepare_bone",
+    "Reconstruction",
+    "reconstruct",
 ]
