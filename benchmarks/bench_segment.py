@@ -29,6 +29,13 @@ VOXEL_MM = 0.5
 
 
 def _peak_rss_mb() -> float:
+    """This process's peak RSS, MB: VmHWM (ru_maxrss would carry the parent's peak across fork + exec)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 

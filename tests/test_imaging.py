@@ -117,8 +117,12 @@ def test_missing_slices_still_give_the_bone(tmp_path, bone):
     assert surface_distance(segment_bone(back).to_trimesh(), bone).rms_mm < 0.2
 
 
+def _arrays(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    return mesh.vertices, mesh.faces
+
+
 def _picked(scene: trimesh.Trimesh, voxel_mm: float = 1.5):
-    ct = mesh_to_ct(scene.vertices, scene.faces, voxel_mm=voxel_mm, noise_hu=20.0, seed=5)
+    ct = mesh_to_ct(*_arrays(scene), voxel_mm=voxel_mm, noise_hu=20.0, seed=5)
     return segment_bone(ct)
 
 
@@ -135,6 +139,14 @@ def test_tibia_is_chosen_beside_its_fibula_and_between_femur_and_talus():
     # Without one: the long bone between the femur and the talus.
     got = _picked(_scene(femur, tibia, talus))
     assert surface_distance(got.to_trimesh(), tibia, samples=4000).rms_mm < 0.4
+
+
+def test_two_legs_are_refused_with_a_reason():
+    right = [_capsule(300.0, 14.0, (0.0, 0.0, 0.0)), _capsule(290.0, 7.0, (35.0, 10.0, -8.0))]
+    left = [_capsule(300.0, 14.0, (-150.0, 0.0, 0.0)), _capsule(290.0, 7.0, (-185.0, 10.0, -8.0))]
+    ct = mesh_to_ct(*_arrays(_scene(*right, *left)), voxel_mm=2.0, noise_hu=20.0)
+    with pytest.raises(InputError, match="both legs"):
+        segment_bone(ct)
 
 
 def test_a_fibula_touching_the_tibia_is_split_off():

@@ -70,6 +70,14 @@ def test_dicom_round_trip_sorts_slices_by_position(tmp_path):
     np.testing.assert_allclose(sitk.GetArrayFromImage(image), volume.hu)
 
 
+def test_one_dicom_file_reads_its_series(tmp_path):
+    volume = _volume()
+    folder = write_dicom_series(volume, tmp_path / "series")
+    back = read_volume(sorted(folder.iterdir())[5])
+    np.testing.assert_array_equal(back.hu, volume.hu)
+    assert back.source == str(folder)
+
+
 def test_dicom_folder_picks_the_ct_series_with_most_slices(tmp_path):
     folder = tmp_path / "study"
     write_dicom_series(_volume(shape=(5, 14, 17), seed=1), folder / "a")

@@ -32,6 +32,9 @@ _LONG_SHARE = 0.5
 # Two bodies lie side by side when their spans along the limb overlap by this
 # share of the shorter span (the fibula beside the tibia).
 _BESIDE_OVERLAP = 0.5
+# ... and their centroids lie within this share of the longer one's length of
+# each other across the limb (tibia-fibula about 0.1; the other leg 0.4 or more).
+_BESIDE_DISTANCE_SHARE = 0.2
 # Touching bones are split by eroding the filled body up to this depth (mm);
 # a split counts when at least two parts hold this share of the eroded voxels
 # and reach this share of the body's length (the fibula: ~15 % of the volume,
@@ -219,7 +222,8 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
     """The tibia among the bodies, and a role for every body.
 
     Long bodies are those at least half as long as the longest. A long body
-    lying beside a bulkier one (spans along the limb overlapping) is a fibula.
+    lying beside a bulkier one (spans along the limb overlapping, centroids
+    close across it) is a fibula.
     Of the remaining long bones in series (femur, tibia), the tibia is the one
     with a fibula beside it, else the one with bodies on both sides (femur
     above, talus below).
@@ -241,13 +245,19 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
         shorter = min(a1 - a0, b1 - b0)
         return max(0.0, min(a1, b1) - max(a0, b0)) / shorter if shorter > 0 else 0.0
 
+    def apart(a: _Body, b: _Body) -> float:
+        gap = b.centroid - a.centroid
+        return float(np.linalg.norm(gap - (gap @ limb) * limb))
+
+    def beside(a: _Body, b: _Body) -> bool:
+        return overlap(a, b) >= _BESIDE_OVERLAP and apart(a, b) <= _BESIDE_DISTANCE_SHARE * max(a.length_mm, b.length_mm)
+
     long = [b for b in bodies if b.length_mm >= _LONG_SHARE * longest]
-    fibulae = {
-        b.label: a.label
-        for b in long
-        for a in long
-        if a is not b and a.volume_mm3 > b.volume_mm3 and overlap(a, b) >= _BESIDE_OVERLAP
-    }
+    fibulae = {}
+    for b in long:
+        hosts = [a for a in long if a is not b and a.volume_mm3 > b.volume_mm3 and beside(a, b)]
+        if hosts:
+            fibulae[b.label] = min(hosts, key=lambda a: apart(a, b)).label
     main = [b for b in long if b.label not in fibulae]
     for label in fibulae:
         roles[label] = "fibula"
@@ -267,7 +277,8 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
             candidates = between
     if len(candidates) != 1:
         raise InputError(
-            f"cannot tell the tibia among {len(candidates)} long bones of similar length; crop the volume to the lower leg",
+            f"cannot tell the tibia among {len(candidates)} long bones (both legs, or femur and tibia without "
+            "fibula or talus); crop the volume to one lower leg",
             path,
         )
     tibia = candidates[0]
