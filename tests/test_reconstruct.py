@@ -1,0 +1,75 @@
+"""`bonecad reconstruct`: the output contract on the phantom (NURBS model; the T-spline is tested with its stage)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bonecad.cli import main
+
+CONTRACT = {"nurbs.step", "nurbs.iges", "curves.step", "curves.iges", "curves.json", "frame.json", "report.json",
+            "report.html", "nurbs_deviation.png", "nurbs_histogram.png", "nurbs_zebra.png", "curves.png"}
+
+
+@pytest.fixture(scope="module")
+def nurbs_run(tmp_path_factory, phantom):
+    folder = tmp_path_factory.mktemp("reconstruct")
+    mesh = folder / "phantom.stl"
+    phantom.to_trimesh().export(mesh)
+    out = folder / "out"
+    assert main(["reconstruct", str(mesh), "--out", str(out), "--model", "nurbs", "-q"]) == 0
+    return out
+
+
+def test_output_contract(nurbs_run):
+    assert CONTRACT <= {p.name for p in nurbs_run.iterdir()}
+    assert not any(p.name.startswith(".") for p in nurbs_run.parent.iterdir())  # no staging left
+
+
+def test_report_json(nurbs_run):
+    report = json.loads((nurbs_run / "report.json").read_text())
+    assert report["schema"] == "bonecad.report/1"
+    assert report["input"]["side"] == "right"
+    nurbs = report["models"]["nurbs"]
+    assert nurbs["info"]["faces"] == 5 and nurbs["info"]["control_points"] > 1000
+    stats = nurbs["deviation"]["mesh_to_cad"]["stats"]
+    assert stats["rms_mm"] < 0.2
+    shares = nurbs["deviation"]["mesh_to_cad"]["histogram"]["shares"]
+    assert sum(shares) == pytest.approx(1.0, abs=1e-9)
+    assert set(nurbs["deviation"]["mesh_to_cad"]["regions"]) == {"distal", "shaft", "proximal"}
+    assert set(report["timings_s"]) >= {"input", "anatomical frame", "contour curves", "NURBS model"}
+
+
+def test_nurbs_step_is_one_closed_valid_solid(nurbs_run, phantom):
+    from OCP.BRepCheck import BRepCheck_Analyzer
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
+    from OCP.IFSelect import IFSelect_RetDone
+    from OCP.STEPControl import STEPControl_Reader
+    from OCP.TopAbs import TopAbs_SOLID
+    from OCP.TopExp import TopExp_Explorer
+
+    reader = STEPControl_Reader()
+    assert reader.ReadFile(str(nurbs_run / "nurbs.step")) == IFSelect_RetDone
+    reader.TransferRoots()
+    shape = reader.OneShape()
+    explorer = TopExp_Explorer(shape, TopAbs_SOLID)
+    solids = []
+    while explorer.More():
+        solids.append(explorer.Current())
+        explorer.Next()
+    assert len(solids) == 1
+    assert BRepCheck_Analyzer(solids[0]).IsValid()
+    props = GProp_GProps()
+    BRepGProp.VolumeProperties_s(solids[0], props, 1e-6)
+    mesh_volume = abs(phantom.to_trimesh().volume)
+    assert abs(props.Mass() - mesh_volume) / mesh_volume < 0.01
+
+
+def test_bad_input_leaves_nothing(tmp_path, capsys):
+    bad = tmp_path / "empty.stl"
+    bad.write_bytes(b"")
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(bad), "--out", str(out), "-q"]) == 2
+    assert not out.exists()
+    assert "empty" in capsys.readouterr().err
