@@ -48,6 +48,15 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
 
 
+def _add_stage(p: argparse.ArgumentParser) -> None:
+    """Arguments of the commands that run the pipeline: input, output folder, boundaries, common options."""
+    p.add_argument("input", type=Path, help="mesh file (STL, OBJ, PLY, OFF) or CT volume (DICOM folder, .nii, "
+                   ".nii.gz, .nrrd, .mha)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    _add_boundaries(p)
+    _add_common(p)
+
+
 def _add_boundaries(p: argparse.ArgumentParser) -> None:
     p.add_argument("--distal-boundary", type=float, metavar="MM",
                    help="height of the distal/shaft boundary above the plafond centre (default: from the anatomy)")
@@ -74,34 +83,24 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Find the mechanical axis, the L-M and A-P planes, the plateau ellipse, the "
                        "local proximal axis and the region boundaries; write frame.json and curves.step "
                        "(points, lines, planes as native CAD entities) into --out.")
-    p.add_argument("mesh", type=Path, help="STL, OBJ, PLY or OFF file")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    _add_boundaries(p)
-    _add_common(p)
+    _add_stage(p)
 
     p = sub.add_parser("curves", help="contour curves as B-spline edges -> curves.step/.iges/.json/.png",
                        description="Section the tibia (distal and proximal half-planes, shaft planes), rebuild "
                        "every section as a cubic B-spline within its tolerance, and write curves.step and "
                        "curves.iges (curves and reference entities), curves.json (poles, knots, achieved "
                        "deviation, repairs), curves.png and frame.json into --out.")
-    p.add_argument("mesh", type=Path, help="STL, OBJ, PLY or OFF file")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    _add_boundaries(p)
-    _add_common(p)
+    _add_stage(p)
 
     p = sub.add_parser("reconstruct", help="mesh or CT -> NURBS and T-spline CAD models, analysis, report",
                        description="The whole pipeline: frame, contour curves, the NURBS baseline and/or the "
                        "T-spline model, their deviation/continuity/zebra analysis. Writes nurbs.step/.iges, "
                        "tspline.step/.iges/.json, curves.step/.iges/.json, frame.json, report.json, report.html "
                        "and PNG figures into --out.")
-    p.add_argument("input", type=Path, help="mesh file (STL, OBJ, PLY, OFF) or CT volume (DICOM folder, .nii, "
-                   ".nii.gz, .nrrd, .mha)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    _add_stage(p)
     p.add_argument("--model", choices=["nurbs", "tspline", "both"], default="both", help="which models to build")
     p.add_argument("--apex-fill", choices=["ring", "patch"], default=None,
                    help="NURBS apex holes: a ring of lines lofted flat, or a fill-hole patch (default from config)")
-    _add_boundaries(p)
-    _add_common(p)
 
     p = sub.add_parser("segment", help="CT volume -> tibia surface mesh",
                        description="Read a CT volume (DICOM folder, .nii/.nii.gz, .nrrd, .mha), segment the "
@@ -146,6 +145,18 @@ def _print_inspect(summary: dict) -> None:
         print(f"  {r}")
 
 
+def _print_result(result) -> None:
+    if result.contours is not None:
+        for name, summary in result.contours.summary().items():
+            print(f"{name:<9} {summary['curves']:>3} curves x {summary['control_points_per_curve']} control points, "
+                  f"worst {summary['worst_max_deviation_mm']:.3f} mm (tolerance {summary['tolerance_mm']} mm, "
+                  f"{summary['within_tolerance']}/{summary['curves']} within)")
+    for name, report in result.reports.items():
+        stats = report.deviation.mesh_to_cad.stats
+        print(f"{name:<9} {report.info.get('faces')} faces, {report.info.get('control_points')} control points, "
+              f"deviation RMS {stats.rms_mm:.3f} mm, worst {max(stats.max_outside_mm, stats.max_inside_mm):.3f} mm")
+
+
 def _run(args: argparse.Namespace) -> None:
     from . import pipeline
     from .config import load_config
@@ -157,42 +168,23 @@ def _run(args: argparse.Namespace) -> None:
             print(json.dumps(summary, indent=2))
         else:
             _print_inspect(summary)
-    elif args.command == "frame":
-        from .mesh.intake import load_bone
-
-        bone = load_bone(args.mesh, units=args.units, config=config)
-        result = pipeline.reconstruct_bone(bone, args.out, until="frame", config=config,
-                                           distal_boundary_mm=args.distal_boundary,
-                                           proximal_boundary_mm=args.proximal_boundary)
-        print(f"{result.frame.side} tibia; frame.json and curves.step written to {args.out}")
-    elif args.command == "curves":
-        from .mesh.intake import load_bone
-
-        bone = load_bone(args.mesh, units=args.units, config=config)
-        contours = pipeline.reconstruct_bone(bone, args.out, until="curves", config=config,
-                                             distal_boundary_mm=args.distal_boundary,
-                                             proximal_boundary_mm=args.proximal_boundary).contours
-        for name, summary in contours.summary().items():
-            print(f"{name:<9} {summary['curves']:>3} curves x {summary['control_points_per_curve']} control points, "
-                  f"worst {summary['worst_max_deviation_mm']:.3f} mm (tolerance {summary['tolerance_mm']} mm, "
-                  f"{summary['within_tolerance']}/{summary['curves']} within)")
-        print(f"curves written to {args.out}")
-    elif args.command == "reconstruct":
-        models = ("nurbs", "tspline") if args.model == "both" else (args.model,)
-        result = pipeline.reconstruct(args.input, args.out, models=models, apex_fill=args.apex_fill,
-                                      units=args.units, config=config, distal_boundary_mm=args.distal_boundary,
+    elif args.command in ("frame", "curves", "reconstruct"):
+        until = {"frame": "frame", "curves": "curves", "reconstruct": "models"}[args.command]
+        models = ("nurbs", "tspline") if getattr(args, "model", "both") == "both" else (args.model,)
+        result = pipeline.reconstruct(args.input, args.out, until=until, models=models,
+                                      apex_fill=getattr(args, "apex_fill", None), units=args.units, config=config,
+                                      distal_boundary_mm=args.distal_boundary,
                                       proximal_boundary_mm=args.proximal_boundary)
-        for name, report in result.reports.items():
-            stats = report.deviation.mesh_to_cad.stats
-            print(f"{name:<8} {report.info.get('faces')} faces, {report.info.get('control_points')} control points, "
-                  f"deviation RMS {stats.rms_mm:.3f} mm, worst {max(stats.max_outside_mm, stats.max_inside_mm):.3f} mm")
-        print(f"models and report written to {args.out} ({sum(result.timings_s.values()):.1f} s)")
+        _print_result(result)
+        print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} "
+              f"({sum(result.timings_s.values()):.1f} s)")
     elif args.command == "segment":
         bone = pipeline.run_segment(args.ct, args.out)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
     elif args.command == "demo":
-        pipeline.run_demo(args.out, config=config)
-        print(f"demo outputs written to {args.out}")
+        result = pipeline.run_demo(args.out, config=config)
+        _print_result(result)
+        print(f"demo outputs written to {args.out} ({sum(result.timings_s.values()):.1f} s)")
 
 
 def main(argv: list[str] | None = None) -> int:

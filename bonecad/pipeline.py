@@ -308,7 +308,7 @@ def reconstruct(
     )
 
 
-def run_demo(out_dir: str | Path, *, config: dict | None = None) -> None:
+def run_demo(out_dir: str | Path, *, config: dict | None = None) -> Reconstruction:
     """``bonecad demo``: the embedded phantom as a real case starts, from its CT, through every stage.
 
     Writes the phantom's mesh (phantom.stl) and synthetic CT (phantom_ct.nii.gz),
@@ -327,4 +327,6 @@ def run_demo(out_dir: str | Path, *, config: dict | None = None) -> None:
             ct_path = write_nifti(mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=0.8), stage_dir / "phantom_ct.nii.gz")
         with timings.stage("segmentation of the phantom CT"):
             bone = load_input(ct_path, config=config)
-        reconstruct_bone(bone, stage_dir, config=config, timings=timings)
+        result = reconstruct_bone(bone, stage_dir, config=config, timings=timings)
+    result.out_dir = Path(out_dir)
+    return result
