@@ -1,0 +1,409 @@
+"""Least-squares fitting of cubic T-splines to points, with parameter correction
+and error-driven refinement (TSPLINE.md, "Fitting").
+
+With weights 1 a T-spline is linear in its control points, so fitting is a
+sparse linear least-squares problem (each row holds at most 16 non-zeros):
+
+    min_P  sum_k w_k |S(s_k, t_k) - x_k|^2 / sum_k w_k  +  lambda E_fair(P) / area,
+    E_fair = integral |S_ss|^2 + 2 |S_st|^2 + |S_tt|^2 ds dt  (thin-plate energy),
+
+solved through the normal equations with a sparse LU (the normal matrix is
+symmetric positive definite; one factorisation serves the three coordinates).
+Parameters are corrected by projecting every point onto the surface (Newton on
+the squared distance; Hoschek 1988, "Intrinsic parametrization for
+approximation"; Piegl & Tiller, The NURBS Book, sec. 9.4), and the surface is
+refined where the error stays above the tolerance:
+
+- ``mode="local"``: the failing Bezier elements are split into four by exact,
+  analysis-suitable local refinement (Scott, Li, Sederberg, Hughes 2012);
+- ``mode="global"``: whole knot lines through the failing elements are
+  inserted, which keeps a tensor product (the comparison surface).
+
+Everything here is numpy/scipy on the parameter domain of the T-spline; it
+knows nothing of bones.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
+
+from bonecad.errors import FitError, InputError
+from bonecad.tspline import KnotSegment, TSpline, insert_segments, refine_elements
+
+log = logging.getLogger("bonecad")
+
+
+@dataclass(frozen=True)
+class FitTolerances:
+    """When a fit is good enough, and how hard to try.
+
+    share_within : (share, mm): this share of the (weighted) points lies within mm.
+    max_deviation_mm : no point beyond this.
+    rms_mm : weighted RMS distance at most this.
+    max_control_points : refinement budget (stop, and say so, when the next round would pass it).
+    max_rounds : refinement rounds at most.
+    min_element_mm : elements smaller than this (parameter units; mm along s and t
+        for the bone's arc-length parameterisation) are not refined further.
+    mark_fraction : each round refines the fewest elements that hold this
+        fraction of the point weight beyond the tolerance (Doerfler marking),
+        and every element with a point beyond ``max_deviation_mm``.
+    """
+
+    share_within: tuple[float, float] = (0.99, 0.25)
+    max_deviation_mm: float = 1.0
+    rms_mm: float = 0.1
+    max_control_points: int = 20000
+    max_rounds: int = 12
+    min_element_mm: float = 0.5
+    mark_fraction: float = 0.8
+
+
+@dataclass(frozen=True)
+class FitStats:
+    """Distances of the fitted points to the surface (after projection).
+
+    share_within : weighted share within the tolerance distance; max_mm, rms_mm : weighted.
+    """
+
+    control_points: int
+    elements: int
+    share_within: float
+    max_mm: float
+    rms_mm: float
+
+    def meets(self, tol: FitTolerances) -> bool:
+        return (
+            self.share_within >= tol.share_within[0]
+            and self.max_mm <= tol.max_deviation_mm
+            and self.rms_mm <= tol.rms_mm
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "control_points": self.control_points,
+            "elements": self.elements,
+            "share_within": round(self.share_within, 5),
+            "max_mm": round(self.max_mm, 4),
+            "rms_mm": round(self.rms_mm, 4),
+        }
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """An adaptive fit: the surface, the final parameters of the points, and the history.
+
+    s, t : (n,) parameters of the points on the final surface; distance_mm : (n,).
+    converged : the tolerances hold; stopped : why refinement stopped.
+    """
+
+    tspline: TSpline
+    s: np.ndarray
+    t: np.ndarray
+    distance_mm: np.ndarray
+    stats: FitStats
+    history: list[FitStats] = field(default_factory=list)
+    converged: bool = False
+    stopped: str = ""
+
+
+# ------------------------------------------------------------------ projection
+def _wrap_clamp(ts: TSpline, s: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    mesh = ts.mesh
+    lo, hi = mesh.s_range
+    if mesh.periodic:
+        s = lo + np.mod(s - lo, mesh.s_period)
+    else:
+        s = np.clip(s, lo, hi)
+    return s, np.clip(t, *mesh.t_range)
+
+
+def project_points(
+    ts: TSpline, points: np.ndarray, s: np.ndarray, t: np.ndarray, *, iterations: int = 6
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest points by Newton's method on |S(s, t) - x|^2 from a starting guess.
+
+    points : (n, 3) mm; s, t : (n,) starting parameters. Steps are damped so the
+    distance never grows; parameters stay in the domain (s wraps, t clamps).
+    Returns (s, t, distance (n,) mm).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    s, t = _wrap_clamp(ts, np.asarray(s, dtype=np.float64).copy(), np.asarray(t, dtype=np.float64).copy())
+    cur = ts.evaluate(s, t, order=2)
+    r = cur.points - points
+    dist2 = np.einsum("ij,ij->i", r, r)
+    for _ in range(iterations):
+        su, tv = cur.ds, cur.dt
+        g0 = np.einsum("ij,ij->i", su, r)
+        g1 = np.einsum("ij,ij->i", tv, r)
+        a = np.einsum("ij,ij->i", su, su) + np.einsum("ij,ij->i", cur.dss, r)
+        b = np.einsum("ij,ij->i", su, tv) + np.einsum("ij,ij->i", cur.dst, r)
+        c = np.einsum("ij,ij->i", tv, tv) + np.einsum("ij,ij->i", cur.dtt, r)
+        det = a * c - b * b
+        ok = (a > 0) & (det > 1e-12 * np.maximum(a * c, 1e-300))
+        # Newton where the Hessian is positive definite, else a gradient step (Gauss-Newton diagonal)
+        gn_a = np.maximum(np.einsum("ij,ij->i", su, su), 1e-300)
+        gn_c = np.maximum(np.einsum("ij,ij->i", tv, tv), 1e-300)
+        ds_ = np.where(ok, -(c * g0 - b * g1) / np.where(ok, det, 1.0), -g0 / gn_a)
+        dt_ = np.where(ok, -(a * g1 - b * g0) / np.where(ok, det, 1.0), -g1 / gn_c)
+        step = 1.0
+        active = np.ones(len(s), dtype=bool)
+        new_s, new_t = s.copy(), t.copy()
+        for _halving in range(4):
+            cand_s, cand_t = _wrap_clamp(ts, s + step * ds_, t + step * dt_)
+            idx = np.flatnonzero(active)
+            if idx.size == 0:
+                break
+            p = ts.evaluate(cand_s[idx], cand_t[idx]).points - points[idx]
+            d2 = np.einsum("ij,ij->i", p, p)
+            better = d2 <= dist2[idx]
+            new_s[idx[better]] = cand_s[idx[better]]
+            new_t[idx[better]] = cand_t[idx[better]]
+            dist2[idx[better]] = d2[better]
+            active[idx[better]] = False
+            step *= 0.5
+        moved = np.abs(new_s - s).max(initial=0.0) + np.abs(new_t - t).max(initial=0.0)
+        s, t = new_s, new_t
+        cur = ts.evaluate(s, t, order=2)
+        r = cur.points - points
+        if moved < 1e-10:
+            break
+    return s, t, np.sqrt(np.einsum("ij,ij->i", r, r))
+
+
+def initial_parameters(
+    ts: TSpline, points: np.ndarray, *, grid: tuple[int, int] = (256, 1024), iterations: int = 6
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest-point parameters of points on a surface with no prior guess.
+
+    The surface is sampled on a ``grid`` (s, t) of parameter values; each point
+    starts at its nearest sample (KD-tree) and is then projected by Newton.
+    Returns (s, t, distance (n,) mm).
+    """
+    (s0, s1), (t0, t1) = ts.mesh.s_range, ts.mesh.t_range
+    ns, nt = grid
+    gs = np.linspace(s0, s1, ns, endpoint=not ts.mesh.periodic)
+    gt = np.linspace(t0, t1, nt)
+    ss, tt = np.meshgrid(gs, gt, indexing="ij")
+    samples = ts.evaluate(ss.ravel(), tt.ravel()).points
+    _, idx = cKDTree(samples).query(np.asarray(points, dtype=np.float64), workers=-1)
+    return project_points(ts, points, ss.ravel()[idx], tt.ravel()[idx], iterations=iterations)
+
+
+# --------------------------------------------------------------- least squares
+def fairness_matrix(ts: TSpline, *, gauss: int = 2) -> sp.csr_matrix:
+    """Thin-plate energy of the surface as a quadratic form in the control points.
+
+    Returns F (n, n) with E_fair = sum over coordinates of P^T F P, by
+    Gauss-Legendre quadrature (``gauss`` points per direction and element).
+    Divided by the parameter-domain area, so the energy is a mean.
+    """
+    ext = ts.extraction
+    g, gw = np.polynomial.legendre.leggauss(gauss)
+    g, gw = 0.5 * (g + 1.0), 0.5 * gw
+    uu, vv = np.meshgrid(g, g, indexing="ij")
+    ww = np.outer(gw, gw).ravel()
+    hs = np.diff(ext.s_bounds, axis=1)[:, 0]
+    ht = np.diff(ext.t_bounds, axis=1)[:, 0]
+    s = (ext.s_bounds[:, :1] + uu.ravel()[None, :] * hs[:, None]).ravel()
+    t = (ext.t_bounds[:, :1] + vv.ravel()[None, :] * ht[:, None]).ravel()
+    # quadrature points sit strictly inside their elements: locate() finds the right one
+    area = (hs * ht)[:, None] * ww[None, :]
+    q = np.sqrt(area.ravel() / area.sum())
+    d = sp.diags(q)
+    f = sp.csr_matrix((ts.n_control, ts.n_control))
+    for ds, dt, c in ((2, 0, 1.0), (1, 1, 2.0), (0, 2, 1.0)):
+        m = d @ ts.basis_matrix(s, t, ds=ds, dt=dt)
+        f = f + c * (m.T @ m)
+    return f.tocsr()
+
+
+def solve_control_points(
+    ts: TSpline,
+    s: np.ndarray,
+    t: np.ndarray,
+    points: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    fairness: float = 1e-4,
+    fixed: np.ndarray | None = None,
+) -> TSpline:
+    """Least-squares control points for points at given parameters (same T-mesh).
+
+    points : (n, 3) mm; weights : (n,) >= 0 (None: equal).
+    fairness : weight lambda of the thin-plate term (mm^4 per unit parameter^4 x
+        mean squared distance; a regulariser where data are sparse).
+    fixed : optional (n_control,) bool, control points kept as they are in ``ts``.
+    Returns a polynomial T-spline (weights 1) on the same mesh.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    n = len(points)
+    if points.shape != (n, 3) or np.shape(s) != (n,) or np.shape(t) != (n,):
+        raise InputError(f"points, s, t: expected (n, 3), (n,), (n,), got {points.shape}, {np.shape(s)}, {np.shape(t)}")
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    basis = ts.basis_matrix(s, t)
+    normal = (basis.T @ sp.diags(w) @ basis).tocsr()
+    rhs = basis.T @ (w[:, None] * points)
+    if fairness > 0:
+        normal = normal + fairness * fairness_matrix(ts)
+    if fixed is not None and fixed.any():
+        free = np.flatnonzero(~fixed)
+        known = ts.control_points[fixed]
+        rhs = rhs[free] - normal[free][:, np.flatnonzero(fixed)] @ known
+        normal = normal[free][:, free]
+    else:
+        free = np.arange(ts.n_control)
+    # tiny Tikhonov term: control points no datum or fairness reaches stay put
+    scale = normal.diagonal().max()
+    normal = normal + sp.identity(normal.shape[0]) * (1e-12 * scale)
+    try:
+        lu = spla.splu(normal.tocsc())
+    except RuntimeError as exc:
+        raise FitError(f"least-squares fit: singular normal equations ({exc})") from exc
+    cp = ts.control_points.copy()
+    cp[free] = lu.solve(np.asarray(rhs))
+    if not np.all(np.isfinite(cp)):
+        raise FitError("least-squares fit produced non-finite control points")
+    return TSpline(ts.mesh, cp, np.ones(ts.n_control))
+
+
+# ------------------------------------------------------------------- statistics
+def fit_stats(ts: TSpline, distance: np.ndarray, weights: np.ndarray, within_mm: float) -> FitStats:
+    w = weights / weights.sum()
+    return FitStats(
+        control_points=ts.n_control,
+        elements=ts.extraction.n_elements,
+        share_within=float(w[distance <= within_mm].sum()),
+        max_mm=float(distance.max()),
+        rms_mm=float(np.sqrt(np.sum(w * distance**2))),
+    )
+
+
+def element_sizes_mm(ts: TSpline) -> np.ndarray:
+    """(n_e,) physical size of each Bezier element: the shorter of its two
+    mid-lines' chord lengths (mm), so the stopping size means the same at the
+    apex, where parameter lines crowd, as on the shaft."""
+    ext = ts.extraction
+    sm, tm = ext.s_bounds.mean(axis=1), ext.t_bounds.mean(axis=1)
+    eps_s = 1e-9 * np.diff(ext.s_bounds, axis=1)[:, 0]
+    eps_t = 1e-9 * np.diff(ext.t_bounds, axis=1)[:, 0]
+    a = ts.evaluate(ext.s_bounds[:, 0] + eps_s, tm).points
+    b = ts.evaluate(ext.s_bounds[:, 1] - eps_s, tm).points
+    c = ts.evaluate(sm, ext.t_bounds[:, 0] + eps_t).points
+    d = ts.evaluate(sm, ext.t_bounds[:, 1] - eps_t).points
+    return np.minimum(np.linalg.norm(b - a, axis=1), np.linalg.norm(d - c, axis=1))
+
+
+def _marked_elements(ts: TSpline, s, t, distance, weights, tol: FitTolerances, frozen=None) -> np.ndarray:
+    """Elements to refine: Doerfler marking of the weight beyond the tolerance.
+
+    Elements are ranked by the weight (area) of their points beyond the
+    tolerance distance; the smallest set holding ``mark_fraction`` of that
+    weight is marked, plus every element with a point beyond the maximum
+    deviation. Elements below ``min_element_mm`` (physical size) and those
+    ``frozen`` (a function of element bounds -> bool) are left alone.
+    """
+    ext = ts.extraction
+    elem, _, _ = ext.locate(s, t)
+    n_e = ext.n_elements
+    bad = distance > tol.share_within[1]
+    wbad = np.bincount(elem, weights * bad, minlength=n_e)
+    worst = np.zeros(n_e)
+    np.maximum.at(worst, elem, distance)
+    eligible = element_sizes_mm(ts) >= 2 * tol.min_element_mm
+    if frozen is not None:
+        eligible &= ~frozen(ext.s_bounds, ext.t_bounds)
+    wbad = np.where(eligible, wbad, 0.0)
+    order = np.argsort(-wbad)
+    cum = np.cumsum(wbad[order])
+    marked = np.zeros(n_e, dtype=bool)
+    if cum[-1] > 0:
+        k = int(np.searchsorted(cum, tol.mark_fraction * cum[-1])) + 1
+        marked[order[:k]] = True
+    marked |= worst > tol.max_deviation_mm
+    return np.flatnonzero(marked & eligible & ((wbad > 0) | (worst > tol.max_deviation_mm)))
+
+
+def _refine_globally(ts: TSpline, elements: np.ndarray) -> TSpline:
+    """Insert complete knot lines through the middle of the given elements (tensor product kept)."""
+    ext = ts.extraction
+    mesh = ts.mesh
+    (s0, s1), (t0, t1) = mesh.s_range, mesh.t_range
+    s_mid = np.unique(np.round(ext.s_bounds[elements].mean(axis=1), 12))
+    t_mid = np.unique(np.round(ext.t_bounds[elements].mean(axis=1), 12))
+    segs = [KnotSegment("s", float(v), t0, t1) for v in s_mid]
+    if mesh.periodic:
+        segs += [KnotSegment("t", float(v), s0, s0 + mesh.s_period) for v in t_mid]
+    else:
+        segs += [KnotSegment("t", float(v), s0, s1) for v in t_mid]
+    return insert_segments(ts, segs).tspline
+
+
+def fit_adaptive(
+    ts: TSpline,
+    points: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    s: np.ndarray | None = None,
+    t: np.ndarray | None = None,
+    tolerances: FitTolerances | None = None,
+    fairness: float = 1e-4,
+    mode: Literal["local", "global"] = "local",
+    corrections: int = 2,
+    constraints: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    frozen=None,
+) -> FitResult:
+    """Fit ``ts`` to points, refining until the tolerances hold or the budget is spent.
+
+    ts : the starting surface (its control points give the first parameters
+        when s, t are not given). points : (n, 3) mm; weights : (n,) (area each
+        point stands for; None: equal). mode : "local" (T-spline refinement of
+        failing elements) or "global" (whole knot lines: tensor product).
+    corrections : parameter corrections (projection + re-solve) per round.
+    constraints : optional (points (m, 3), s (m,), t (m,), weights (m,)):
+        extra data at fixed parameters (not projected), e.g. a boundary curve.
+    frozen : optional function (s_bounds (n_e, 2), t_bounds (n_e, 2)) -> (n_e,)
+        bool of elements never to refine.
+    """
+    tol = tolerances or FitTolerances()
+    if mode not in ("local", "global"):
+        raise InputError(f"mode: expected 'local' or 'global', got {mode!r}")
+    points = np.asarray(points, dtype=np.float64)
+    w = np.ones(len(points)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if s is None or t is None:
+        s, t, _ = initial_parameters(ts, points)
+    history: list[FitStats] = []
+    stopped = ""
+    for round_ in range(tol.max_rounds + 1):
+        for _ in range(corrections):
+            if constraints is None:
+                ts = solve_control_points(ts, s, t, points, w, fairness=fairness)
+            else:
+                cp_, cs_, ct_, cw_ = constraints
+                ts = solve_control_points(ts, np.concatenate([s, cs_]), np.concatenate([t, ct_]),
+                                          np.vstack([points, cp_]), np.concatenate([w, cw_]), fairness=fairness)
+            s, t, dist = project_points(ts, points, s, t, iterations=4)
+        stats = fit_stats(ts, dist, w, tol.share_within[1])
+        history.append(stats)
+        log.info("T-spline fit (%s) round %d: %s", mode, round_, stats.to_dict())
+        if stats.meets(tol):
+            return FitResult(ts, s, t, dist, stats, history, True, "tolerances met")
+        if round_ == tol.max_rounds:
+            stopped = f"round limit ({tol.max_rounds}) reached"
+            break
+        marked = _marked_elements(ts, s, t, dist, w, tol, frozen)
+        if marked.size == 0:
+            stopped = f"no element larger than {2 * tol.min_element_mm} mm misses the tolerance"
+            break
+        new = refine_elements(ts, marked).tspline if mode == "local" else _refine_globally(ts, marked)
+        if new.n_control > tol.max_control_points:
+            stopped = f"control-point budget ({tol.max_control_points}) reached: the next round needs {new.n_control}"
+            break
+        ts = new
+    return FitResult(ts, s, t, dist, stats, history, False, stopped)

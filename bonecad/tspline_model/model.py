@@ -1,0 +1,339 @@
+"""The T-spline tibia model (DESIGN.md step 5): one C2 T-spline tube from the
+distal to the proximal apex ring, fitted to the whole polygonal model, with
+two quad-topology apex caps; converted to OpenCascade by Bezier extraction.
+
+Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
+
+1. parameterise and skin the three contour-curve sets on one T-mesh
+   (:mod:`.skinning`);
+2. fit the T-spline to every mesh vertex outside the apex holes (area
+   weights), with parameter correction and error-driven local refinement
+   (:mod:`.fit`), until the tolerances hold or the control-point budget is hit;
+3. fit a tensor-product B-spline to the same points and tolerances by
+   refining whole knot lines, for the control-point comparison;
+4. cap the apex holes (:mod:`.caps`), extract Bezier patches, sew them into a
+   closed solid in scanner coordinates (outward faces, positive volume).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bonecad.anatomy.frame import AnatomicalFrame
+from bonecad.config import load_config
+from bonecad.curves.contours import ContourSet, bone_coordinates
+from bonecad.errors import FitError, KernelError
+from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.tspline import TSpline, to_dict
+
+from .caps import ApexCap, build_cap
+from .fit import FitResult, FitTolerances, fit_adaptive, initial_parameters
+from .skinning import Parameterisation, initial_mesh, parameterisation, skin
+
+log = logging.getLogger("bonecad")
+
+#: Sewing tolerances tried in turn (mm).
+_SEWING_TOLERANCES_MM = (1e-4, 1e-3, 1e-2)
+
+
+@dataclass(frozen=True)
+class TSplineModel:
+    """The fitted T-spline model of one tibia.
+
+    tspline : the tube (bone coordinates, mm); caps : the two apex caps.
+    control_points : the tube's control points (caps: ``cap_control_points``).
+    tensor_product_control_points : control points of the tensor-product
+        B-spline fitted to the same tolerance (None when not computed);
+        tensor_product_converged : whether that fit met the tolerances.
+    fit : the adaptive fit (final stats, history, why it stopped).
+    shape : OCP TopoDS_Shape (closed solid), scanner coordinates.
+    """
+
+    tspline: TSpline
+    caps: tuple[ApexCap, ApexCap]
+    parameterisation: Parameterisation
+    fit: FitResult
+    skin_residual_mm: tuple[float, float]
+    tensor_product_control_points: int | None
+    tensor_product_converged: bool | None
+    tensor_product_fit: FitResult | None
+    shape: object
+    frame: AnatomicalFrame
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def control_points(self) -> int:
+        return self.tspline.n_control
+
+    @property
+    def cap_control_points(self) -> int:
+        return sum(c.tspline.n_control for c in self.caps)
+
+    @property
+    def control_point_ratio(self) -> float | None:
+        if not self.tensor_product_control_points:
+            return None
+        return self.control_points / self.tensor_product_control_points
+
+    def summary(self) -> dict:
+        """JSON-ready figures: counts, fit statistics, continuity of the caps, timings."""
+        return {
+            "control_points": self.control_points,
+            "cap_control_points": self.cap_control_points,
+            "bezier_elements": self.tspline.extraction.n_elements,
+            "tensor_product_control_points": self.tensor_product_control_points,
+            "tensor_product_converged": self.tensor_product_converged,
+            "control_point_ratio": None if self.control_point_ratio is None else round(self.control_point_ratio, 4),
+            "fit": self.fit.stats.to_dict(),
+            "fit_converged": self.fit.converged,
+            "fit_stopped": self.fit.stopped,
+            "fit_history": [h.to_dict() for h in self.fit.history],
+            "skin_residual_mm": {"rms": round(self.skin_residual_mm[0], 4), "max": round(self.skin_residual_mm[1], 4)},
+            "parameterisation": self.parameterisation.to_dict(),
+            "continuity": {
+                "tube": "C2 (one cubic T-spline, single interior knots; periodic in s)",
+                "caps": {
+                    c.end: {
+                        "ring": "G1 by construction",
+                        "ring_normal_angle_deg_max": round(c.ring_angle_deg[0], 6),
+                        "ring_normal_angle_deg_mean": round(c.ring_angle_deg[1], 6),
+                        "pole": "G1 (one tangent plane; degenerate quads meet at the pole)",
+                        "pole_normal_spread_deg": round(c.pole_spread_deg, 4),
+                    }
+                    for c in self.caps
+                },
+            },
+            "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
+        }
+
+
+def tspline_settings(config: dict | None = None) -> dict:
+    """The [tspline] settings (defaults laid under ``config``'s)."""
+    config = config or load_config()
+    return dict(config["tspline"])
+
+
+def tolerances(settings: dict) -> FitTolerances:
+    share, within = settings["target_share_within_mm"]
+    return FitTolerances(
+        share_within=(float(share), float(within)),
+        max_deviation_mm=float(settings["max_deviation_mm"]),
+        rms_mm=float(settings["rms_mm"]),
+        max_control_points=int(settings["max_control_points"]),
+        max_rounds=int(settings["max_rounds"]),
+        min_element_mm=float(settings["min_element_mm"]),
+        mark_fraction=float(settings["mark_fraction"]),
+    )
+
+
+def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(n,) mm^2: a third of the area of each vertex's triangles."""
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return np.bincount(faces.ravel(), np.repeat(area / 3.0, 3), minlength=len(vertices))
+
+
+def hole_masks(vertices: np.ndarray, par: Parameterisation, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh vertices inside the distal and the proximal apex hole (bone coordinates)."""
+    distal = (vertices[:, 2] < par.z_distal) & (np.linalg.norm(vertices[:, :2], axis=1) < radius_mm)
+    a, b = par.local_axis
+    d = (a - b) / np.linalg.norm(a - b)
+    rel = vertices - a
+    off = rel - np.outer(rel @ d, d)
+    proximal = (vertices[:, 2] > par.z_proximal) & (np.linalg.norm(off, axis=1) < radius_mm)
+    return distal, proximal
+
+
+def ring_constraints(
+    contours: ContourSet, par: Parameterisation, radius_mm: float, *, count: int = 180, band_mm: float = 5.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points of the two apex rings with fixed parameters (t = 0 and t = t_end).
+
+    The ring of an end is where the bone meets the cylinder of the apex-hole
+    radius about that end's axis: the half-plane curves start on it; between
+    them its height along the axis is interpolated (periodic, linear in the
+    angle). Each point weighs as a strip ``band_mm`` wide, so the tube's
+    boundary rows, which no mesh point pins down, follow the hole's edge
+    instead of wrinkling. Returns (points (2 count, 3), s, t, weights).
+    """
+    theta = np.linspace(0.0, 360.0, count, endpoint=False)
+    out_p, out_s, out_t = [], [], []
+    a, b = par.local_axis
+    local = (a - b) / np.linalg.norm(a - b)
+    for curves, origin, axis, t_value in (
+        (contours.distal, np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.0),
+        (contours.proximal, a, local, par.t_end),
+    ):
+        e1 = np.array([1.0, 0.0, 0.0]) - axis[0] * axis
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(axis, e1)
+        angles = np.array([c.angle_deg % 360.0 for c in curves])
+        heights = np.array([(c.curve(np.array([0.0]))[0] - origin) @ axis for c in curves])
+        h = np.interp(theta, angles, heights, period=360.0)
+        rad = np.radians(theta)
+        ring = origin + radius_mm * (np.cos(rad)[:, None] * e1 + np.sin(rad)[:, None] * e2) + h[:, None] * axis
+        out_p.append(ring)
+        out_s.append(theta / 360.0 * par.s_period)
+        out_t.append(np.full(count, t_value))
+    weight = 2 * np.pi * radius_mm / count * band_mm
+    return np.vstack(out_p), np.concatenate(out_s), np.concatenate(out_t), np.full(2 * count, weight)
+
+
+def build_tspline_model(
+    bone: BoneMesh,
+    frame: AnatomicalFrame,
+    contours: ContourSet,
+    *,
+    config: dict | None = None,
+    compare_tensor_product: bool | None = None,
+) -> TSplineModel:
+    """Skin, fit, refine, cap and convert: the T-spline model of a tibia.
+
+    config : a full configuration (``load_config()``); its [tspline] section is used.
+    compare_tensor_product : fit the tensor-product comparison surface too
+        (default: the ``compare_tensor_product`` setting); it about doubles the time.
+    Raises FitError when a stage cannot produce a usable surface, KernelError
+    when OpenCascade cannot make a valid closed solid of it.
+    """
+    config = config or load_config()
+    st = tspline_settings(config)
+    tol = tolerances(st)
+    fair = float(st["fairness_weight"])
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    vertices, faces = bone_coordinates(bone, frame)
+    weights = vertex_areas(vertices, faces)
+    par = parameterisation(contours)
+    radius = float(config["curves"]["apex_hole_radius_mm"])
+    hole_d, hole_p = hole_masks(vertices, par, radius)
+    rings = ring_constraints(contours, par, radius)
+    keep = ~(hole_d | hole_p) & (weights > 0)
+    pts, w = vertices[keep], weights[keep]
+
+    mesh = initial_mesh(par, s_intervals=int(st["initial_s_intervals"]), t_spacing_mm=float(st["initial_t_spacing_mm"]),
+                        apex_rows=int(st["apex_rows"]))
+    ts0, _, residual = skin(contours, par, mesh, fairness=fair)
+    skin_res = (float(np.sqrt(np.mean(residual**2))), float(residual.max()))
+    timings["skin"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    s0, t0, _ = initial_parameters(ts0, pts)
+    fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fair, mode="local", constraints=rings)
+    timings["fit"] = time.perf_counter() - clock
+    if not fit.converged:
+        log.warning("T-spline fit stopped before the tolerances held: %s (%s)", fit.stopped, fit.stats.to_dict())
+
+    do_tp = bool(st["compare_tensor_product"]) if compare_tensor_product is None else compare_tensor_product
+    tp_fit = None
+    if do_tp:
+        clock = time.perf_counter()
+        grid = initial_mesh(par, s_intervals=int(st["initial_s_intervals"]),
+                            t_spacing_mm=float(st["initial_t_spacing_mm"]), apex_rows=0)
+        tp0, _, _ = skin(contours, par, grid, fairness=fair)
+        s1, t1, _ = initial_parameters(tp0, pts)
+        tp_fit = fit_adaptive(tp0, pts, w, s=s1, t=t1, tolerances=tol, fairness=fair, mode="global",
+                              constraints=rings)
+        timings["tensor_product"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    tube = fit.tspline
+    local_dir = par.local_axis[0] - par.local_axis[1]
+    caps = (
+        build_cap(tube, "distal", vertices[hole_d], np.array([0.0, 0.0, -1.0])),
+        build_cap(tube, "proximal", vertices[hole_p], local_dir / np.linalg.norm(local_dir)),
+    )
+    timings["caps"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    shape = _occ_shape([tube, caps[0].tspline, caps[1].tspline], frame)
+    timings["occ"] = time.perf_counter() - clock
+    return TSplineModel(
+        tspline=tube,
+        caps=caps,
+        parameterisation=par,
+        fit=fit,
+        skin_residual_mm=skin_res,
+        tensor_product_control_points=None if tp_fit is None else tp_fit.tspline.n_control,
+        tensor_product_converged=None if tp_fit is None else tp_fit.converged,
+        tensor_product_fit=tp_fit,
+        shape=shape,
+        frame=frame,
+        timings_s=timings,
+    )
+
+
+def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
+    """The same T-spline mapped to scanner coordinates (an affine map of the control points: exact)."""
+    return TSpline(ts.mesh, frame.to_scanner(ts.control_points), ts.weights)
+
+
+def _occ_shape(patches: list[TSpline], frame: AnatomicalFrame):
+    """Bezier faces of all patches (scanner coordinates), sewn into a closed solid with outward faces."""
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
+    from OCP.TopoDS import TopoDS
+
+    from bonecad.tspline.occ import bezier_faces, is_valid, sew
+
+    faces = []
+    for ts in patches:
+        faces.extend(bezier_faces(to_scanner(ts, frame)))
+    # Neighbouring Bezier edges agree to rounding; a T-junction lying a few
+    # micrometres from an element corner can still leave a pair unsewn at the
+    # finest tolerance, so widen it (up to 10 um) until the solid closes.
+    for tol in _SEWING_TOLERANCES_MM:
+        shell = sew(faces, tolerance_mm=tol)
+        maker = BRepBuilderAPI_MakeSolid(TopoDS.Shell_s(shell))
+        if not maker.IsDone():
+            continue
+        solid = maker.Solid()
+        if is_valid(solid):
+            break
+    else:
+        raise KernelError(f"the T-spline faces ({len(faces)}) do not sew into a valid closed solid "
+                          f"(tolerances up to {_SEWING_TOLERANCES_MM[-1]} mm)")
+    props = GProp_GProps()
+    BRepGProp.VolumeProperties_s(solid, props)
+    if props.Mass() < 0:
+        solid.Reverse()
+    return solid
+
+
+def write_tspline(model: TSplineModel, out_dir: str | Path) -> dict[str, Path]:
+    """Write tspline.step, tspline.iges and tspline.json (scanner coordinates, mm) into ``out_dir``."""
+    from build123d import Solid
+
+    from bonecad.io.cad import write_iges, write_step
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    solid = Solid(model.shape)
+    solid.label = "tibia_tspline"
+    paths = {
+        "step": write_step(solid, out / "tspline.step"),
+        "iges": write_iges(solid, out / "tspline.iges"),
+    }
+    doc = {
+        "format": "bonecad.tspline_model",
+        "version": 1,
+        "units": "mm",
+        "coordinates": "input (scanner) coordinates",
+        "tube": to_dict(to_scanner(model.tspline, model.frame)),
+        "caps": {c.end: to_dict(to_scanner(c.tspline, model.frame)) for c in model.caps},
+        "summary": model.summary(),
+    }
+    path = out / "tspline.json"
+    tmp = path.with_suffix(".json.part")
+    tmp.write_text(json.dumps(doc))
+    tmp.replace(path)
+    paths["json"] = path
+    return paths
+
+
+
