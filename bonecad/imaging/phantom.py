@@ -63,10 +63,11 @@ def mesh_to_ct(
     solid = bone >= 0.5
     # Marrow share of each voxel: 0 within the cortex, rising to 1 over one voxel
     # (a partial-volume inner boundary, so a thin cortex has no see-through gaps).
-    depth = _coarse_distance(solid, voxel_mm, inside=True)
+    depth = _coarse_distance(solid, voxel_mm, inside=True, grid_mm=1.0)
     marrow = np.clip((depth - np.float32(cortex_mm)) / np.float32(voxel_mm), 0.0, 1.0)
     del depth
-    near = _coarse_distance(solid, voxel_mm, inside=False) <= soft_tissue_mm
+    # The tissue/air border is far from the bone: a 3 mm grid places it well enough.
+    near = _coarse_distance(solid, voxel_mm, inside=False, grid_mm=3.0) <= soft_tissue_mm
     hu = np.where(near, np.float32(SOFT_TISSUE_HU), np.float32(AIR_HU))
     del near, solid
     inside = np.float32(CORTICAL_HU) + marrow * np.float32(MARROW_HU - CORTICAL_HU)
@@ -98,12 +99,12 @@ def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return faces if signed > 0 else faces[:, ::-1]
 
 
-def _coarse_distance(mask: np.ndarray, voxel_mm: float, *, inside: bool) -> np.ndarray:
+def _coarse_distance(mask: np.ndarray, voxel_mm: float, *, inside: bool, grid_mm: float) -> np.ndarray:
     """Distance (mm) between voxel centres and the mask's boundary, from inside or outside.
 
-    Computed on a grid of about 1 mm and interpolated back to the mask's grid.
+    Computed on a grid of about ``grid_mm`` and interpolated back to the mask's grid.
     """
-    factor = max(1, int(round(1.0 / voxel_mm)))
+    factor = max(1, int(round(grid_mm / voxel_mm)))
     pad = [(0, (-n) % factor) for n in mask.shape]
     padded = np.pad(mask, pad, mode="edge")
     blocks = padded.reshape(
@@ -113,8 +114,10 @@ def _coarse_distance(mask: np.ndarray, voxel_mm: float, *, inside: bool) -> np.n
     coarse = blocks.all(axis=(1, 3, 5)) if inside else ~blocks.any(axis=(1, 3, 5))
     dist = ndimage.distance_transform_edt(coarse, sampling=factor * voxel_mm).astype(np.float32)
     if factor > 1:
-        # Linear interpolation between block centres (grid_mode: blocks tile the fine grid).
-        dist = ndimage.zoom(dist, factor, order=1, grid_mode=True, mode="nearest")
+        for axis in range(3):
+            dist = np.repeat(dist, factor, axis=axis)
+        # A box filter over the blocks ~ linear interpolation between block centres.
+        ndimage.uniform_filter(dist, size=factor, output=dist, mode="nearest")
     return dist[: mask.shape[0], : mask.shape[1], : mask.shape[2]]
 
 
