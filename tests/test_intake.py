@@ -114,3 +114,20 @@ def test_real_meshes_keep_the_tibia(path):
     assert 250.0 <= bone.bodies[0].length_mm <= 500.0
     assert all(b.role in {"fibula", "fragment"} for b in bone.bodies[1:])
     assert len(bone.bodies) == (1 if "no_fib" in path.name else 2)
+
+
+def test_duplicate_and_non_manifold_faces_are_repaired(phantom, tmp_path):
+    mesh = phantom.to_trimesh()
+    faces = mesh.faces
+    # A duplicated face, a degenerate face and a fin sharing an existing edge (non-manifold edge).
+    a, b, _ = faces[100]
+    extra_vertex = len(mesh.vertices)
+    vertices = np.vstack([mesh.vertices, mesh.vertices[a] + [0.0, 0.0, 5.0]])
+    broken = np.vstack([faces, faces[:1], [[a, a, b]], [[a, b, extra_vertex]]])
+    path = tmp_path / "broken.ply"
+    trimesh.Trimesh(vertices, broken, process=False).export(path)
+    bone = bonecad.load_bone(path)
+    assert bone.watertight and len(bone.bodies) == 1
+    assert abs(bone.to_trimesh().volume - mesh.volume) / mesh.volume < 1e-3
+    text = " ".join(bone.repairs)
+    assert "duplicate faces" in text and ("non-manifold" in text or "degenerate" in text)
