@@ -311,12 +311,13 @@ def reconstruct(
 def run_demo(out_dir: str | Path, *, config: dict | None = None) -> Reconstruction:
     """``bonecad demo``: the embedded phantom as a real case starts, from its CT, through every stage.
 
-    Writes the phantom's mesh (phantom.stl) and synthetic CT (phantom_ct.nii.gz),
-    then runs the pipeline on that CT.
+    Writes the phantom's mesh (phantom.stl) and its synthetic CT (0.8 mm voxels,
+    30 HU noise) as NIfTI (phantom_ct.nii.gz) and as a DICOM series (phantom_ct/),
+    then runs the pipeline on the DICOM series.
     """
     from .imaging import mesh_to_ct
     from .imaging.phantom_tibia import phantom_tibia
-    from .io.volume import write_nifti
+    from .io.volume import write_dicom_series, write_nifti
 
     config = config or load_config()
     timings = Timings()
@@ -324,9 +325,11 @@ def run_demo(out_dir: str | Path, *, config: dict | None = None) -> Reconstructi
         with timings.stage("phantom tibia and its CT"):
             phantom = phantom_tibia()
             phantom.to_trimesh().export(stage_dir / "phantom.stl")
-            ct_path = write_nifti(mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=0.8), stage_dir / "phantom_ct.nii.gz")
+            ct = mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=0.8)
+            write_nifti(ct, stage_dir / "phantom_ct.nii.gz")
+            dicom = write_dicom_series(ct, stage_dir / "phantom_ct")
         with timings.stage("segmentation of the phantom CT"):
-            bone = load_input(ct_path, config=config)
+            bone = load_input(dicom, config=config)
         result = reconstruct_bone(bone, stage_dir, config=config, timings=timings)
     result.out_dir = Path(out_dir)
     return result
