@@ -4,7 +4,7 @@ and error-driven refinement (TSPLINE.md, "Fitting").
 With weights 1 a T-spline is linear in its control points, so fitting is a
 sparse linear least-squares problem (each row holds at most 16 non-zeros):
 
-    min_P  sum_k w_k |S(s_k, t_k) - x_k|^2 / sum_k w_k  +  lambda E_fair(P) / area,
+    min_P  sum_k w_k |S(s_k, t_k) - x_k|^2 / sum_k w_k  +  lambda E_fair(P),
     E_fair = integral |S_ss|^2 + 2 |S_st|^2 + |S_tt|^2 ds dt  (thin-plate energy),
 
 solved through the normal equations with a sparse LU (the normal matrix is
@@ -200,8 +200,10 @@ def fairness_matrix(ts: TSpline, *, gauss: int = 2) -> sp.csr_matrix:
     """Thin-plate energy of the surface as a quadratic form in the control points.
 
     Returns F (n, n) with E_fair = sum over coordinates of P^T F P, by
-    Gauss-Legendre quadrature (``gauss`` points per direction and element).
-    Divided by the parameter-domain area, so the energy is a mean.
+    Gauss-Legendre quadrature (``gauss`` points per direction and element),
+    integrated over the parameter domain (not averaged: against the mean
+    squared distance of the data term, a fixed weight then smooths a large
+    domain as firmly as a small one per unit of parameter area).
     """
     ext = ts.extraction
     g, gw = np.polynomial.legendre.leggauss(gauss)
@@ -214,7 +216,7 @@ def fairness_matrix(ts: TSpline, *, gauss: int = 2) -> sp.csr_matrix:
     t = (ext.t_bounds[:, :1] + vv.ravel()[None, :] * ht[:, None]).ravel()
     # quadrature points sit strictly inside their elements: locate() finds the right one
     area = (hs * ht)[:, None] * ww[None, :]
-    q = np.sqrt(area.ravel() / area.sum())
+    q = np.sqrt(area.ravel())
     d = sp.diags(q)
     f = sp.csr_matrix((ts.n_control, ts.n_control))
     for ds, dt, c in ((2, 0, 1.0), (1, 1, 2.0), (0, 2, 1.0)):
@@ -232,13 +234,16 @@ def solve_control_points(
     *,
     fairness: float = 1e-4,
     fixed: np.ndarray | None = None,
+    fairness_form: sp.csr_matrix | None = None,
 ) -> TSpline:
     """Least-squares control points for points at given parameters (same T-mesh).
 
     points : (n, 3) mm; weights : (n,) >= 0 (None: equal).
-    fairness : weight lambda of the thin-plate term (mm^4 per unit parameter^4 x
-        mean squared distance; a regulariser where data are sparse).
+    fairness : weight lambda of the thin-plate term (integral over the
+        parameter domain) against the mean squared distance; it keeps the
+        surface from folding where no datum holds it.
     fixed : optional (n_control,) bool, control points kept as they are in ``ts``.
+    fairness_form : ``fairness_matrix(ts)`` when already computed for this mesh.
     Returns a polynomial T-spline (weights 1) on the same mesh.
     """
     points = np.asarray(points, dtype=np.float64)
@@ -251,7 +256,7 @@ def solve_control_points(
     normal = (basis.T @ sp.diags(w) @ basis).tocsr()
     rhs = basis.T @ (w[:, None] * points)
     if fairness > 0:
-        normal = normal + fairness * fairness_matrix(ts)
+        normal = normal + fairness * (fairness_matrix(ts) if fairness_form is None else fairness_form)
     if fixed is not None and fixed.any():
         free = np.flatnonzero(~fixed)
         known = ts.control_points[fixed]
@@ -381,14 +386,17 @@ def fit_adaptive(
     history: list[FitStats] = []
     stopped = ""
     for round_ in range(tol.max_rounds + 1):
-        for _ in range(corrections):
+        form = fairness_matrix(ts) if fairness > 0 else None
+        # refinement keeps the surface, so after the first round one correction suffices
+        for _ in range(corrections if round_ == 0 else 1):
             if constraints is None:
-                ts = solve_control_points(ts, s, t, points, w, fairness=fairness)
+                ts = solve_control_points(ts, s, t, points, w, fairness=fairness, fairness_form=form)
             else:
                 cp_, cs_, ct_, cw_ = constraints
                 ts = solve_control_points(ts, np.concatenate([s, cs_]), np.concatenate([t, ct_]),
-                                          np.vstack([points, cp_]), np.concatenate([w, cw_]), fairness=fairness)
-            s, t, dist = project_points(ts, points, s, t, iterations=4)
+                                          np.vstack([points, cp_]), np.concatenate([w, cw_]),
+                                          fairness=fairness, fairness_form=form)
+            s, t, dist = project_points(ts, points, s, t, iterations=3)
         stats = fit_stats(ts, dist, w, tol.share_within[1])
         history.append(stats)
         log.info("T-spline fit (%s) round %d: %s", mode, round_, stats.to_dict())

@@ -1,0 +1,117 @@
+"""T-spline fitting on known smooth surfaces: least squares with parameter
+correction converges as control points are added, and local refinement
+reaches a tolerance with fewer control points than whole knot lines."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bonecad.tspline import TSpline, check_suitability
+from bonecad.tspline_model.fit import (
+    FitTolerances,
+    fit_adaptive,
+    initial_parameters,
+    project_points,
+    solve_control_points,
+)
+
+RADIUS, LENGTH = 10.0, 60.0
+PERIOD = 2 * np.pi * RADIUS  # s in mm of arc at the nominal radius
+
+
+def cylinder(n_s: int, n_t: int) -> TSpline:
+    """A coarse tensor-product tube (the starting surface), s periodic."""
+    th = 2 * np.pi * np.arange(n_s) / n_s
+    z = np.linspace(0.0, LENGTH, n_t + 2)
+    cp = np.stack(
+        [RADIUS * np.cos(th)[:, None] + 0 * z, RADIUS * np.sin(th)[:, None] + 0 * z, np.broadcast_to(z, (n_s, n_t + 2))],
+        axis=-1,
+    )
+    return TSpline.from_grid(np.arange(n_s) * PERIOD / n_s, np.linspace(0.0, LENGTH, n_t), cp, s_period=PERIOD)
+
+
+def ellipsoid_band(n: int, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points of an ellipsoid band (semi-axes 12, 8, 45 mm; |z| <= 30 mm), with (s, t) guesses."""
+    th = rng.uniform(0, 2 * np.pi, n)
+    t = rng.uniform(0, LENGTH, n)
+    z = t - LENGTH / 2
+    scale = np.sqrt(1 - (z / 45.0) ** 2)
+    pts = np.stack([12.0 * scale * np.cos(th), 8.0 * scale * np.sin(th), t], axis=1)
+    return pts, th / (2 * np.pi) * PERIOD, t
+
+
+def bumpy_tube(n: int, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A tube with two small, well separated bumps: detail a tensor product must pay for everywhere."""
+    th = rng.uniform(0, 2 * np.pi, n)
+    z = rng.uniform(0, LENGTH, n)
+    r = RADIUS + 1.2 * np.exp(-((th - 1.0) ** 2) * 30 - (z - 15.0) ** 2 / 6) + 1.2 * np.exp(
+        -((th - 4.0) ** 2) * 30 - (z - 45.0) ** 2 / 6
+    )
+    return np.stack([r * np.cos(th), r * np.sin(th), z], axis=1), th / (2 * np.pi) * PERIOD, z
+
+
+def test_least_squares_error_falls_as_control_points_are_added():
+    rng = np.random.default_rng(0)
+    pts, s, t = ellipsoid_band(6000, rng)
+    errors = []
+    for n_s, n_t in ((6, 3), (10, 5), (16, 8)):
+        ts = cylinder(n_s, n_t)
+        ss, tt = s, t
+        for _ in range(3):  # parameter correction by projection
+            ts = solve_control_points(ts, ss, tt, pts, fairness=1e-6)
+            ss, tt, dist = project_points(ts, pts, ss, tt)
+        errors.append(float(np.sqrt(np.mean(dist**2))))
+    assert errors[0] > 3 * errors[1] > 9 * errors[2]
+    assert errors[2] < 2e-3  # mm, on a 24 mm wide band
+
+
+def test_projection_finds_the_closest_point():
+    rng = np.random.default_rng(1)
+    ts = cylinder(12, 6)
+    pts, s, t = ellipsoid_band(2000, rng)
+    ts = solve_control_points(ts, s, t, pts, fairness=1e-6)
+    probe = pts + rng.normal(0, 0.3, pts.shape)
+    s0, t0, d0 = initial_parameters(ts, probe, grid=(128, 128))
+    # the residual is normal to the surface (first-order optimality) ...
+    sample = ts.evaluate(s0, t0, order=1)
+    r = probe - sample.points
+    inside = (t0 > 1e-6) & (t0 < LENGTH - 1e-6)
+    cos_s = np.abs(np.einsum("ij,ij->i", r, sample.ds)) / (np.linalg.norm(sample.ds, axis=1) * np.maximum(d0, 1e-12))
+    assert np.percentile(cos_s[inside & (d0 > 1e-3)], 99) < 1e-4
+    # ... and no grid sample is closer than the projected point
+    gs, gt = np.meshgrid(np.linspace(0, PERIOD, 400), np.linspace(0, LENGTH, 200), indexing="ij")
+    dense = ts.evaluate(gs.ravel(), gt.ravel()).points
+    from scipy.spatial import cKDTree
+
+    dg, _ = cKDTree(dense).query(probe)
+    assert np.all(d0 <= dg + 1e-9)
+
+
+@pytest.mark.parametrize("tol_mm", [0.02])
+def test_local_refinement_needs_fewer_control_points_than_a_tensor_product(tol_mm):
+    rng = np.random.default_rng(2)
+    pts, s, t = bumpy_tube(12000, rng)
+    tol = FitTolerances(share_within=(0.99, tol_mm), max_deviation_mm=2.5 * tol_mm, rms_mm=tol_mm / 2,
+                        min_element_mm=0.05, max_rounds=8, mark_fraction=0.6)
+    local = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6, mode="local")
+    glob = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6, mode="global")
+    assert local.converged and glob.converged, (local.stopped, glob.stopped)
+    for res in (local, glob):
+        assert res.stats.share_within >= 0.99 and res.stats.max_mm <= 2.5 * tol_mm
+        # the history's error falls while control points grow
+        counts = [h.control_points for h in res.history]
+        assert counts == sorted(counts) and res.history[-1].rms_mm < res.history[0].rms_mm / 5
+    assert check_suitability(local.tspline.mesh).suitable
+    assert not (local.tspline.mesh.t_edges.all() and local.tspline.mesh.s_edges.all())  # T-junctions
+    assert glob.tspline.mesh.t_edges.all() and glob.tspline.mesh.s_edges.all()  # a tensor product
+    assert local.tspline.n_control <= 0.75 * glob.tspline.n_control, (local.tspline.n_control, glob.tspline.n_control)
+
+
+def test_budget_stops_refinement_and_says_so():
+    rng = np.random.default_rng(3)
+    pts, s, t = bumpy_tube(4000, rng)
+    tol = FitTolerances(share_within=(0.99, 0.001), max_deviation_mm=0.002, rms_mm=0.0005, max_control_points=150)
+    res = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6)
+    assert not res.converged
+    assert "budget (150)" in res.stopped
+    assert res.tspline.n_control <= 150
