@@ -8,6 +8,11 @@ Prints tessellation time, distance time for ``[analysis] sample_points`` points
 closed-form distance |p| - R. Also times a whole ``shape_deviation`` (both
 directions) and a continuity pass.
 
+Then ``analyse_model`` (tessellation, deviation both ways, continuity, three
+PNGs) on the phantom tibia's NURBS model (target < 4 s) and on a shell of its
+Bezier patches, about 3.5k Geom_BezierSurface faces sewn like a T-spline model
+(target < 6 s): best of 3 wall-clock and process time.
+
 Run: /work/venv/bin/python benchmarks/bench_analysis.py
 """
 from __future__ import annotations
@@ -74,5 +79,55 @@ def main() -> None:
     print(f"seam continuity (sphere): {time.perf_counter() - t0:.3f} s")
 
 
+def bezier_shell(shape):
+    """The B-spline faces of ``shape`` split into their Bezier patches and sewn into one shell."""
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_Sewing
+    from OCP.GeomConvert import GeomConvert_BSplineSurfaceToBezierSurface
+    from OCP.TColGeom import TColGeom_Array2OfBezierSurface
+
+    from bonecad.analysis.tessellation import shape_faces
+
+    sewing = BRepBuilderAPI_Sewing(1e-4)
+    for face in shape_faces(shape):
+        split = GeomConvert_BSplineSurfaceToBezierSurface(BRep_Tool.Surface_s(face))
+        patches = TColGeom_Array2OfBezierSurface(1, split.NbUPatches(), 1, split.NbVPatches())
+        split.Patches(patches)
+        for i in range(1, split.NbUPatches() + 1):
+            for j in range(1, split.NbVPatches() + 1):
+                sewing.Add(BRepBuilderAPI_MakeFace(patches.Value(i, j), 1e-7).Face())
+    sewing.Perform()
+    return sewing.SewedShape()
+
+
+def bench_models() -> None:
+    import tempfile
+    from pathlib import Path
+
+    import bonecad
+    from bonecad.analysis.model import analyse_model
+    from bonecad.analysis.tessellation import shape_faces
+    from bonecad.curves.contours import contour_curves
+    from bonecad.nurbs.model import build_nurbs
+
+    bone = bonecad.phantom_tibia()
+    frame = bonecad.anatomical_frame(bone)
+    nurbs = build_nurbs(contour_curves(bone, frame)).shape
+    out = Path(tempfile.mkdtemp())
+    for name, shape, target in (("nurbs", nurbs, 4.0), ("bezier", bezier_shell(nurbs), 6.0)):
+        wall, cpu = np.inf, np.inf
+        for _ in range(3):
+            t0, c0 = time.perf_counter(), time.process_time()
+            report = analyse_model(name, shape, bone, frame, out, info={})
+            wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
+        dev = report.deviation
+        print(f"analyse_model {name}: {len(shape_faces(shape))} faces, mesh {len(bone.faces)} triangles: "
+              f"{wall:.2f} s wall, {cpu:.2f} s process (best of 3; target < {target:g} s)")
+        print(f"  steps {({k: round(v, 2) for k, v in dev.timings_s.items()})}; RMS {dev.mesh_to_cad.stats.rms_mm:.4f} mm, "
+              f"refined {100 * dev.mesh_to_cad.refined.mean():.3f} % / {100 * dev.cad_to_mesh.refined.mean():.3f} %, "
+              f"unrefined bound {dev.unrefined_bound_mm:.4f} mm")
+
+
 if __name__ == "__main__":
     main()
+    bench_models()

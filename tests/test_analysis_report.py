@@ -15,7 +15,7 @@ from bonecad.analysis.goldens import UPDATE_ENV, GoldenMismatch, assert_histogra
 from bonecad.analysis.render import deviation_map_png, histogram_png
 from bonecad.analysis.report import SCHEMA, ModelReport, write_report
 from bonecad.analysis.statistics import Histogram
-from bonecad.analysis.tessellation import TessellationSettings, tessellate
+from bonecad.analysis.tessellation import TessellationSettings, brepmesh_face, face_spline_surface, tessellate
 from bonecad.errors import InputError
 
 RADIUS = 10.0
@@ -33,11 +33,16 @@ def sphere():
 
 def wavy_mesh(tess, amplitude_mm: float, offset_mm: float = 0.0):
     """The sphere's tessellation with a radial wave of known amplitude (a stand-in 'bone mesh')."""
-    coarse = tessellate(tess.faces[0], TessellationSettings(deflection_mm=0.05))
-    v = coarse.vertices
+    # the mesh the golden was recorded with: BRepMesh at 0.05 mm, edges bisected to 1 mm
+    # (fixed here, so the golden does not move with the analysis' own tessellator)
+    face = tess.faces[0]
+    surface, native = face_spline_surface(face)
+    settings = TessellationSettings(deflection_mm=0.05, angular_deflection_rad=0.2, coverage_tolerance=0.005,
+                                    area_rel_eps=1e-6, max_edge_mm=1.0)
+    v, _, triangles, _ = brepmesh_face(face, 0, surface, native, False, settings)
     unit = v / np.linalg.norm(v, axis=1, keepdims=True)
     wave = amplitude_mm * np.sin(3 * np.arctan2(unit[:, 1], unit[:, 0])) * np.cos(2 * np.arcsin(unit[:, 2]))
-    return v + unit * (wave + offset_mm)[:, None], coarse.triangles
+    return v + unit * (wave + offset_mm)[:, None], triangles
 
 
 def _regions(points):

@@ -59,12 +59,15 @@ def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: n
     take((d1 <= 0) & (d2 <= 0), np.array([1.0, 0.0, 0.0]))
     take((d3 >= 0) & (d4 <= d3), np.array([0.0, 1.0, 0.0]))
     take((d6 >= 0) & (d5 <= d6), np.array([0.0, 0.0, 1.0]))
+    def ratio(num, den):  # a zero-length edge (den = 0): its first vertex
+        return np.divide(num, den, out=np.zeros(n), where=den != 0)
+
     with np.errstate(divide="ignore", invalid="ignore"):
-        v = d1 / (d1 - d3)
+        v = ratio(d1, d1 - d3)
         take((vc <= 0) & (d1 >= 0) & (d3 <= 0), np.column_stack([1 - v, v, np.zeros(n)]))
-        w = d2 / (d2 - d6)
+        w = ratio(d2, d2 - d6)
         take((vb <= 0) & (d2 >= 0) & (d6 <= 0), np.column_stack([1 - w, np.zeros(n), w]))
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        w = ratio(d4 - d3, (d4 - d3) + (d5 - d6))
         take((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), np.column_stack([np.zeros(n), 1 - w, w]))
         denom = va + vb + vc
         v = vb / denom

@@ -204,13 +204,16 @@ def seam_continuity(
     from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
     from OCP.TopExp import TopExp
     from OCP.TopoDS import TopoDS
-    from OCP.TopTools import TopTools_IndexedDataMapOfShapeListOfShape
+    from OCP.TopTools import TopTools_IndexedDataMapOfShapeListOfShape, TopTools_IndexedMapOfShape
     from OCP.gp import gp_Pnt, gp_Vec
 
     tol = tolerances or ContinuityTolerances()
     if samples < 2:
         raise InputError(f"samples must be >= 2, got {samples}")
     faces = shape_faces(shape)
+    face_map = TopTools_IndexedMapOfShape()  # face -> its index, in shape_faces order (IsSame)
+    for face in faces:
+        face_map.Add(face)
     edge_map = TopTools_IndexedDataMapOfShapeListOfShape()
     TopExp.MapShapesAndAncestors_s(shape, TopAbs_EDGE, TopAbs_FACE, edge_map)
     rows = []
@@ -221,8 +224,8 @@ def seam_continuity(
         ancestors = [TopoDS.Face_s(f) for f in edge_map.FindFromIndex(i)]
         index = []
         for f in ancestors:
-            k = next((j for j, g in enumerate(faces) if g.IsSame(f)), None)
-            if k is not None and k not in index:
+            k = face_map.FindIndex(f) - 1  # -1: not a face of the shape
+            if k >= 0 and k not in index:
                 index.append(k)
         if len(index) != 2:
             continue  # free edge, seam of one face, or non-manifold

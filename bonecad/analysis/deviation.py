@@ -36,7 +36,7 @@ import numpy as np
 from ..config import load_config
 from ..errors import InputError
 from .closest import TriangleLocator, vertex_normals
-from .nurbs_eval import project
+from .nurbs_eval import project_faces
 from .statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
 from .tessellation import Tessellation, TessellationSettings, tessellate
 
@@ -188,12 +188,11 @@ def signed_distance_to_shape(
     refined = np.zeros(len(points), dtype=bool)
     tri = tess.triangles[near.triangle]
     uv_start = np.einsum("nk,nkj->nj", near.barycentric, tess.uv[tri])
-    for index, surface in enumerate(tess.surfaces):
-        sel = np.flatnonzero(face == index)
-        if surface is None or len(sel) == 0:
-            continue
-        proj = project(surface, points[sel], uv_start[sel])
-        n = -proj.normal if tess.reversed_faces[index] else proj.normal
+    sset = tess.surface_set
+    sel = np.flatnonzero(sset.group[face] >= 0)
+    if len(sel):
+        proj = project_faces(sset, face[sel], points[sel], uv_start[sel])
+        n = np.where(tess.reversed_faces[face[sel]][:, None], -proj.normal, proj.normal)
         exact = _signed(points[sel], proj.foot, n)
         ok = (proj.residual_mm <= residual_tol_mm) & np.isfinite(exact)
         dist[sel[ok]] = exact[ok]
@@ -297,11 +296,10 @@ def shape_deviation(
     tri = tess.triangles[cad.triangle]
     uv = np.einsum("nk,nkj->nj", cad.barycentric, tess.uv[tri])
     snapped = np.zeros(count, dtype=bool)
-    for index, surface in enumerate(tess.surfaces):
-        sel = np.flatnonzero(face == index)
-        if surface is None or len(sel) == 0:
-            continue
-        proj = project(surface, cad_points[sel], uv[sel])
+    sset = tess.surface_set
+    sel = np.flatnonzero(sset.group[face] >= 0)
+    if len(sel):
+        proj = project_faces(sset, face[sel], cad_points[sel], uv[sel])
         ok = proj.residual_mm <= 1e-6
         cad_points[sel[ok]] = proj.foot[ok]
         snapped[sel[ok]] = True

@@ -73,37 +73,8 @@ def basis_with_derivative(
     belongs to basis function ``span - p + r`` (NURBS Book A2.2 and A2.3).
     """
     t = np.asarray(t, dtype=np.float64)
-    p = degree
-    span = _span(knots, p, t)
-    count = len(t)
-    left = np.zeros((count, p + 1))
-    right = np.zeros((count, p + 1))
-    values = np.ones((count, 1))
-    lower = values
-    for j in range(1, p + 1):
-        left[:, j] = t - knots[span + 1 - j]
-        right[:, j] = knots[span + j] - t
-        saved = np.zeros(count)
-        new = np.empty((count, j + 1))
-        for r in range(j):
-            denom = right[:, r + 1] + left[:, j - r]
-            temp = np.divide(values[:, r], denom, out=np.zeros(count), where=denom != 0)
-            new[:, r] = saved + right[:, r + 1] * temp
-            saved = left[:, j - r] * temp
-        new[:, j] = saved
-        if j == p:
-            lower = values
-        values = new
-    derivs = np.zeros((count, p + 1))
-    if p > 0:
-        for r in range(p + 1):
-            i = span - p + r
-            if r >= 1:
-                d = knots[i + p] - knots[i]
-                derivs[:, r] += np.divide(p * lower[:, r - 1], d, out=np.zeros(count), where=d != 0)
-            if r <= p - 1:
-                d = knots[i + p + 1] - knots[i + 1]
-                derivs[:, r] -= np.divide(p * lower[:, r], d, out=np.zeros(count), where=d != 0)
+    span = _span(knots, degree, t)
+    values, derivs = _basis_at_span(knots, degree, t, span)
     return span, values, derivs
 
 
@@ -111,27 +82,9 @@ def evaluate(
     surface: SplineSurface, u: np.ndarray, v: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points and first partial derivatives at (u, v): three (N, 3) arrays S, S_u, S_v."""
-    p, q = surface.degree_u, surface.degree_v
-    su, nu_, du = basis_with_derivative(surface.knots_u, p, u)
-    sv, nv_, dv = basis_with_derivative(surface.knots_v, q, v)
-    iu = (su - p)[:, None, None] + np.arange(p + 1)[None, :, None]
-    iv = (sv - q)[:, None, None] + np.arange(q + 1)[None, None, :]
-    count = len(su)
-    block = surface.poles_w[iu, iv].reshape(count, (p + 1) * (q + 1), 4)
-    weights = np.stack(
-        [
-            (nu_[:, :, None] * nv_[:, None, :]).reshape(count, -1),
-            (du[:, :, None] * nv_[:, None, :]).reshape(count, -1),
-            (nu_[:, :, None] * dv[:, None, :]).reshape(count, -1),
-        ],
-        axis=1,
-    )
-    sw, swu, swv = np.moveaxis(np.matmul(weights, block), 1, 0)  # each (N, 4)
-    w = sw[:, 3:4]
-    point = sw[:, :3] / w
-    d_u = (swu[:, :3] - swu[:, 3:4] * point) / w
-    d_v = (swv[:, :3] - swv[:, 3:4] * point) / w
-    return point, d_u, d_v
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    return _Packed([surface]).evaluate(np.zeros(len(u), dtype=np.int64), u, v)
 
 
 @dataclass(frozen=True)
@@ -171,20 +124,178 @@ def project(
     whether a point converged.
     """
     points = np.asarray(points, dtype=np.float64)
+    face = np.zeros(len(points), dtype=np.int64)
+    return project_faces(
+        SurfaceSet([surface]), face, points, uv_start, max_iterations=max_iterations, tol_mm=tol_mm, chunk=chunk
+    )
+
+
+def _basis_at_span(knots: np.ndarray, degree: int, t: np.ndarray, span: np.ndarray):
+    """Basis values and first derivatives (N, p+1) at ``t`` in the given (global) spans (A2.2, A2.3)."""
+    p = degree
+    count = len(t)
+    left = np.empty((count, p + 1))
+    right = np.empty((count, p + 1))
+    values = np.ones((count, 1))
+    lower = values
+    for j in range(1, p + 1):
+        left[:, j] = t - knots[span + 1 - j]
+        right[:, j] = knots[span + j] - t
+        saved = np.zeros(count)
+        new = np.empty((count, j + 1))
+        for r in range(j):
+            denom = right[:, r + 1] + left[:, j - r]
+            temp = np.divide(values[:, r], denom, out=np.zeros(count), where=denom != 0)
+            new[:, r] = saved + right[:, r + 1] * temp
+            saved = left[:, j - r] * temp
+        new[:, j] = saved
+        lower = values
+        values = new
+    derivs = np.zeros((count, p + 1))
+    for r in range(p + 1 if p > 0 else 0):
+        i = span - p + r
+        if r >= 1:
+            d = knots[i + p] - knots[i]
+            derivs[:, r] += np.divide(p * lower[:, r - 1], d, out=np.zeros(count), where=d != 0)
+        if r <= p - 1:
+            d = knots[i + p + 1] - knots[i + 1]
+            derivs[:, r] -= np.divide(p * lower[:, r], d, out=np.zeros(count), where=d != 0)
+    return values, derivs
+
+
+class _Packed:
+    """Surfaces of one degree pair with their knots and poles concatenated (one direction per knot array)."""
+
+    def __init__(self, surfaces: list[SplineSurface]):
+        self.p = surfaces[0].degree_u
+        self.q = surfaces[0].degree_v
+        self.ku, self.ku_off, self.ku_key, self.nbu = self._direction([s.knots_u for s in surfaces], self.p)
+        self.kv, self.kv_off, self.kv_key, self.nbv = self._direction([s.knots_v for s in surfaces], self.q)
+        self.lo_u = np.array([s.knots_u[0] for s in surfaces])
+        self.len_u = np.array([max(s.knots_u[-1] - s.knots_u[0], 1e-300) for s in surfaces])
+        self.lo_v = np.array([s.knots_v[0] for s in surfaces])
+        self.len_v = np.array([max(s.knots_v[-1] - s.knots_v[0], 1e-300) for s in surfaces])
+        # the (p+1) x (q+1) poles of every span pair, contiguous: one row gather per point
+        self.spans_v = self.nbv - self.q
+        sizes = (self.nbu - self.p) * self.spans_v
+        self.block_off = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        self.blocks = np.concatenate([self._blocks(s.poles_w, self.p, self.q) for s in surfaces])
+
+    @staticmethod
+    def _blocks(poles: np.ndarray, p: int, q: int) -> np.ndarray:
+        nu, nv = poles.shape[:2]
+        win = np.lib.stride_tricks.sliding_window_view(poles, (p + 1, q + 1), axis=(0, 1))  # (nu-p, nv-q, 4, p+1, q+1)
+        return np.ascontiguousarray(np.moveaxis(win, 2, -1)).reshape((nu - p) * (nv - q), -1)
+
+    @staticmethod
+    def _direction(knot_list, degree):
+        lengths = np.array([len(k) for k in knot_list])
+        off = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+        # search keys: face f's knots mapped into [2f, 2f + 1], increasing over all faces
+        keys = np.concatenate(
+            [2.0 * f + (k - k[0]) / max(k[-1] - k[0], 1e-300) for f, k in enumerate(knot_list)]
+        )
+        return np.concatenate(knot_list), off, keys, lengths - degree - 1
+
+    def _span(self, keys, key_off, nb, degree, lo, length, local, t):
+        key = 2.0 * local + np.clip((t - lo[local]) / length[local], 0.0, 1.0)
+        span = np.searchsorted(keys, key, side="right") - 1 - key_off[local]
+        return np.clip(span, degree, nb[local] - 1) + key_off[local]
+
+    def evaluate(self, local: np.ndarray, u: np.ndarray, v: np.ndarray):
+        p, q = self.p, self.q
+        su = self._span(self.ku_key, self.ku_off, self.nbu, p, self.lo_u, self.len_u, local, u)
+        sv = self._span(self.kv_key, self.kv_off, self.nbv, q, self.lo_v, self.len_v, local, v)
+        nu_, du = _basis_at_span(self.ku, p, u, su)
+        nv_, dv = _basis_at_span(self.kv, q, v, sv)
+        ids = self.block_off[local] + (su - self.ku_off[local] - p) * self.spans_v[local] + (
+            sv - self.kv_off[local] - q
+        )
+        block = np.take(self.blocks, ids, axis=0).reshape(len(ids), p + 1, q + 1, 4)
+        along_u = np.einsum("nka,nabc->nkbc", np.stack([nu_, du], axis=1), block)  # (N, 2, q+1, 4)
+        sw, swv = np.einsum("nkb,nbc->nkc", np.stack([nv_, dv], axis=1), along_u[:, 0]).transpose(1, 0, 2)
+        swu = np.einsum("nb,nbc->nc", nv_, along_u[:, 1])
+        w = sw[:, 3:4]
+        point = sw[:, :3] / w
+        return point, (swu[:, :3] - swu[:, 3:4] * point) / w, (swv[:, :3] - swv[:, 3:4] * point) / w
+
+
+class SurfaceSet:
+    """Many spline surfaces (one per face) evaluated and projected onto together.
+
+    Points carry a face index; surfaces of equal degrees are packed into one set
+    of arrays, so the work per call is a few numpy passes however many faces
+    there are (a T-spline model has thousands of Bezier faces). ``None`` entries
+    (faces without a spline surface) may not be evaluated.
+    """
+
+    def __init__(self, surfaces):
+        self.surfaces = tuple(surfaces)
+        count = len(self.surfaces)
+        self.group = np.full(count, -1, dtype=np.int64)
+        self.local = np.zeros(count, dtype=np.int64)
+        self.bounds = np.zeros((count, 4))
+        self.closed = np.zeros((count, 2), dtype=bool)
+        keys: dict[tuple[int, int], list[int]] = {}
+        for f, s in enumerate(self.surfaces):
+            if s is None:
+                continue
+            keys.setdefault((s.degree_u, s.degree_v), []).append(f)
+            self.bounds[f] = s.bounds
+            self.closed[f] = (s.closed_u, s.closed_v)
+        self._packs = []
+        for g, members in enumerate(keys.values()):
+            self.group[members] = g
+            self.local[members] = np.arange(len(members))
+            self._packs.append(_Packed([self.surfaces[f] for f in members]))
+
+    def evaluate(self, face: np.ndarray, u: np.ndarray, v: np.ndarray):
+        """Points and first partials (three (N, 3) arrays) at (u, v) on faces ``face`` (N,)."""
+        face = np.asarray(face, dtype=np.int64)
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        if len(self._packs) == 1 and (self.group[face] == 0).all():
+            return self._packs[0].evaluate(self.local[face], u, v)
+        if (self.group[face] < 0).any():
+            raise InputError("cannot evaluate faces without a spline surface")
+        out = [np.empty((len(face), 3)) for _ in range(3)]
+        for g, pack in enumerate(self._packs):
+            sel = np.flatnonzero(self.group[face] == g)
+            if len(sel):
+                for arr, val in zip(out, pack.evaluate(self.local[face[sel]], u[sel], v[sel])):
+                    arr[sel] = val
+        return tuple(out)
+
+
+def project_faces(
+    surfaces: SurfaceSet,
+    face: np.ndarray,
+    points: np.ndarray,
+    uv_start: np.ndarray,
+    *,
+    max_iterations: int = 30,
+    tol_mm: float = 1e-7,
+    chunk: int = 65536,
+) -> Projection:
+    """Foot points of ``points`` (N, 3) on the surfaces of faces ``face`` (N,), from ``uv_start`` (N, 2).
+
+    The iteration of :func:`project`, for points on many faces at once.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    face = np.asarray(face, dtype=np.int64)
     uv = np.array(uv_start, dtype=np.float64, copy=True)
-    u0, u1, v0, v1 = surface.bounds
-    lo_b = np.array([u0, v0])
-    hi_b = np.array([u1, v1])
+    lo_b = surfaces.bounds[face][:, [0, 2]]
+    hi_b = surfaces.bounds[face][:, [1, 3]]
+    closed = surfaces.closed[face]
     clamped = np.zeros(len(points), dtype=bool)
     for lo in range(0, len(points), chunk):
         active = np.arange(lo, min(lo + chunk, len(points)))
         for _ in range(max_iterations):
             if len(active) == 0:
                 break
-            pts = points[active]
             cur = uv[active]
-            s, su, sv = evaluate(surface, cur[:, 0], cur[:, 1])
-            r = pts - s
+            s, su, sv = surfaces.evaluate(face[active], cur[:, 0], cur[:, 1])
+            r = points[active] - s
             a = np.einsum("ij,ij->i", su, su)
             b = np.einsum("ij,ij->i", su, sv)
             c = np.einsum("ij,ij->i", sv, sv)
@@ -195,21 +306,22 @@ def project(
             safe = np.where(ok, det, 1.0)
             du = np.where(ok, (c * g1 - b * g2) / safe, 0.0)
             dv = np.where(ok, (a * g2 - b * g1) / safe, 0.0)
-            nxt = np.column_stack([cur[:, 0] + du, cur[:, 1] + dv])
-            if surface.closed_u:
-                nxt[:, 0] = u0 + np.mod(nxt[:, 0] - u0, u1 - u0)
-            if surface.closed_v:
-                nxt[:, 1] = v0 + np.mod(nxt[:, 1] - v0, v1 - v0)
-            hit = np.any((nxt < lo_b) | (nxt > hi_b), axis=1)
-            nxt = np.clip(nxt, lo_b, hi_b)
-            uv[active] = nxt
+            nxt = cur + np.column_stack([du, dv])
+            lo_a, hi_a = lo_b[active], hi_b[active]
+            wrap = closed[active]
+            if wrap.any():
+                nxt = np.where(wrap, lo_a + np.mod(nxt - lo_a, hi_a - lo_a), nxt)
+            hit = np.any((nxt < lo_a) | (nxt > hi_a), axis=1)
+            uv[active] = np.clip(nxt, lo_a, hi_a)
             clamped[active] = hit
-            # surface-space length of the step (first order)
-            step = np.linalg.norm(du[:, None] * su + dv[:, None] * sv, axis=1)
+            step = np.sqrt(du * du * a + 2 * du * dv * b + dv * dv * c)  # |du S_u + dv S_v|
             active = active[(step > tol_mm) & ~hit]
-    parts = [evaluate(surface, uv[i : i + chunk, 0], uv[i : i + chunk, 1]) for i in range(0, len(uv), chunk)]
-    s, su, sv = (np.concatenate([p[k] for p in parts]) if parts else np.zeros((0, 3)) for k in range(3))
-    n = np.cross(su, sv)
+    s = np.empty((len(points), 3))
+    n = np.empty((len(points), 3))
+    for lo in range(0, len(points), chunk):
+        sl = slice(lo, lo + chunk)
+        s[sl], su, sv = surfaces.evaluate(face[sl], uv[sl, 0], uv[sl, 1])
+        n[sl] = np.cross(su, sv)
     norm = np.linalg.norm(n, axis=1, keepdims=True)
     n = n / np.where(norm > 0, norm, 1.0)
     r = points - s

@@ -30,7 +30,6 @@ import numpy as np
 from ..errors import InputError
 from ..io.output import staged_file
 from .deviation import sample_surface
-from .nurbs_eval import evaluate
 from .tessellation import Tessellation
 
 View = Literal["anterior", "posterior"]
@@ -217,20 +216,17 @@ def render_tessellation_normals(
     normals = np.einsum("nk,nkj->nj", samples.barycentric, tess.normals[tri])
     uv = np.einsum("nk,nkj->nj", samples.barycentric, tess.uv[tri])
     face = tess.triangle_face[samples.triangle]
-    for index, surface in enumerate(tess.surfaces):
-        sel = np.flatnonzero(face == index)
-        if surface is None or len(sel) == 0:
-            continue
-        for lo in range(0, len(sel), 65536):
-            part = sel[lo : lo + 65536]
-            _, su, sv = evaluate(surface, uv[part, 0], uv[part, 1])
-            n = np.cross(su, sv)
-            size = np.linalg.norm(n, axis=1, keepdims=True)
-            good = size[:, 0] > 1e-12
-            n = n / np.maximum(size, 1e-300)
-            if tess.reversed_faces[index]:
-                n = -n
-            normals[part[good]] = n[good]
+    sset = tess.surface_set
+    has = np.flatnonzero(sset.group[face] >= 0)
+    for lo in range(0, len(has), 262144):
+        part = has[lo : lo + 262144]
+        _, su, sv = sset.evaluate(face[part], uv[part, 0], uv[part, 1])
+        n = np.cross(su, sv)
+        size = np.linalg.norm(n, axis=1, keepdims=True)
+        good = size[:, 0] > 1e-12
+        n = n / np.maximum(size, 1e-300)
+        n = np.where(tess.reversed_faces[face[part]][:, None], -n, n)
+        normals[part[good]] = n[good]
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     values = face[:, None].astype(float)
     return [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]

@@ -12,40 +12,46 @@ tolerance (adaptive Gauss integration); a face short by more than
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import InputError, KernelError
 from .closest import vertex_normals
-from .nurbs_eval import SplineSurface, project
+from .nurbs_eval import SplineSurface, SurfaceSet, project, project_faces
+
+
+def _setting(key: str):
+    from ..config import load_config
+
+    return lambda: float(load_config()["analysis"][key])
 
 
 @dataclass(frozen=True)
 class TessellationSettings:
-    """Tolerances of the tessellation (mm, rad); the reason for each default is given.
+    """Tolerances of the tessellation (mm, rad); defaults from ``[analysis]`` in defaults.toml.
 
-    deflection_mm : chord error asked of BRepMesh. 0.02 mm is 5x below the
-        0.1 mm deviation band, so the KD-tree first guess lands within a few
-        microns of parameter space of the foot point and Newton needs 2-3 steps.
-    angular_deflection_rad : 0.2 rad keeps triangles on tight apex caps small.
+    deflection_mm : chord error aimed at (``tessellation_deflection_mm``). It only
+        bounds distances that are not refined on the exact surface (a tiny share)
+        and sets how close the Newton start is; the chord error is measured and
+        reported, never assumed.
+    angular_deflection_rad : largest turn of a surface normal along one edge.
     coverage_tolerance : relative area shortfall accepted per face. A chordal
         tessellation is short by about deflection/radius (1e-3 for 0.02 mm on a
         20 mm radius); 0.5 % leaves margin for that and still catches the
         known partial-coverage failure (20 % missing).
     area_rel_eps : relative error asked of BRepGProp's adaptive integration
         (default settings were 1 % off on large B-spline faces).
-    max_edge_mm : triangles with a longer edge are bisected (new nodes on the
-        exact surface). BRepMesh leaves long slivers along flat directions (a
-        shaft, a cylinder); the closest-point search assumes compact triangles.
-        1 mm keeps a tibia near 10^5 triangles.
+    max_edge_mm : longest triangle edge (per parameter direction on grid faces;
+        longer BRepMesh edges are bisected). The closest-point search assumes
+        compact triangles.
     """
 
-    deflection_mm: float = 0.02
-    angular_deflection_rad: float = 0.2
-    coverage_tolerance: float = 0.005
-    area_rel_eps: float = 1e-6
-    max_edge_mm: float = 1.0
+    deflection_mm: float = field(default_factory=_setting("tessellation_deflection_mm"))
+    angular_deflection_rad: float = field(default_factory=_setting("tessellation_angular_deflection_rad"))
+    coverage_tolerance: float = field(default_factory=_setting("coverage_tolerance"))
+    area_rel_eps: float = field(default_factory=_setting("area_rel_eps"))
+    max_edge_mm: float = field(default_factory=_setting("tessellation_max_edge_mm"))
 
 
 @dataclass(frozen=True)
@@ -79,6 +85,11 @@ class Tessellation:
     reversed_faces: np.ndarray
     chord_error_mm: np.ndarray
     faces: tuple  # TopoDS_Face, in the order of the face index
+    surface_set: SurfaceSet | None = None  # the surfaces packed for batched evaluation
+
+    def __post_init__(self) -> None:
+        if self.surface_set is None:
+            object.__setattr__(self, "surface_set", SurfaceSet(self.surfaces))
 
     @property
     def face_count(self) -> int:
@@ -212,94 +223,280 @@ def _native_to_spline_uv(face, surface: SplineSurface, uv: np.ndarray, nodes: np
     return project(surface, nodes, start).uv
 
 
+def is_natural(face, surface: SplineSurface) -> bool:
+    """True when ``face`` is its surface's whole parameter rectangle ``surface.bounds``.
+
+    Rigorous test on the boundary: one wire, and every edge's p-curve is a
+    straight line lying on a side of the rectangle (iso-lines; degenerate edges
+    at poles included). Such a face is tessellated on a parameter grid, which
+    covers it completely by construction.
+    """
+    from OCP.BRepAdaptor import BRepAdaptor_Curve2d
+    from OCP.BRepTools import BRepTools
+    from OCP.GeomAbs import GeomAbs_Line
+    from OCP.TopAbs import TopAbs_EDGE, TopAbs_WIRE
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
+
+    u0, u1, v0, v1 = surface.bounds
+    fu0, fu1, fv0, fv1 = BRepTools.UVBounds_s(face)
+    tol = 1e-9 * max(1.0, abs(u1 - u0), abs(v1 - v0))
+    if max(abs(fu0 - u0), abs(fu1 - u1), abs(fv0 - v0), abs(fv1 - v1)) > tol:
+        return False
+    wires = TopExp_Explorer(face, TopAbs_WIRE)
+    wires.Next()
+    if wires.More():
+        return False
+    explorer = TopExp_Explorer(face, TopAbs_EDGE)
+    while explorer.More():
+        curve = BRepAdaptor_Curve2d(TopoDS.Edge_s(explorer.Current()), face)
+        if curve.GetType() != GeomAbs_Line:
+            return False
+        a = curve.Value(curve.FirstParameter())
+        b = curve.Value(curve.LastParameter())
+        on_side = (
+            (abs(a.X() - u0) <= tol and abs(b.X() - u0) <= tol)
+            or (abs(a.X() - u1) <= tol and abs(b.X() - u1) <= tol)
+            or (abs(a.Y() - v0) <= tol and abs(b.Y() - v0) <= tol)
+            or (abs(a.Y() - v1) <= tol and abs(b.Y() - v1) <= tol)
+        )
+        if not on_side:
+            return False
+        explorer.Next()
+    return True
+
+
+def _breaks(knots: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    inner = np.unique(knots[(knots > lo) & (knots < hi)])
+    return np.concatenate([[lo], inner, [hi]])
+
+
+#: samples per knot span and cross lines per face used to size a grid
+_SIZE_SAMPLES, _SIZE_LINES = 5, 5
+
+
+def _grid_counts(sset: SurfaceSet, faces: list[int], breaks: list[tuple[np.ndarray, np.ndarray]], settings, factor):
+    """Segments per knot span, per face and direction, from sampled iso-lines.
+
+    A span is split into n segments so that (a) no segment is longer than
+    ``max_edge_mm``, (b) the sag of a chord, |C''| (span / n)^2 / 8 with C''
+    from second differences, stays below ``deflection_mm``, and (c) the
+    iso-line turns by at most ``angular_deflection_rad`` per segment.
+    """
+    m = _SIZE_SAMPLES
+    t = np.linspace(0.0, 1.0, m)
+    c = np.linspace(0.0, 1.0, _SIZE_LINES)
+    out = []
+    for direction in (0, 1):
+        fids, us, vs, spans_per_face, span_ids = [], [], [], [], []
+        for f, (bu, bv) in zip(faces, breaks):
+            along, across = (bu, bv) if direction == 0 else (bv, bu)
+            lo, hi = along[:-1], along[1:]
+            par = lo[:, None] + (hi - lo)[:, None] * t  # (S, m)
+            cross = np.union1d(across[0] + (across[-1] - across[0]) * c, 0.5 * (across[:-1] + across[1:]))
+            cross = np.union1d(cross, across)
+            k = len(cross)
+            grid_a = np.broadcast_to(par[:, None, :], (len(lo), k, m))
+            grid_c = np.broadcast_to(cross[None, :, None], (len(lo), k, m))
+            uu, vv = (grid_a, grid_c) if direction == 0 else (grid_c, grid_a)
+            us.append(uu.ravel())
+            vs.append(vv.ravel())
+            fids.append(np.full(uu.size, f))
+            span_ids.append(np.repeat(np.arange(len(lo)) + sum(spans_per_face), k))
+            spans_per_face.append(len(lo))
+        pts = sset.evaluate(np.concatenate(fids), np.concatenate(us), np.concatenate(vs))[0]
+        pts = pts.reshape(-1, m, 3)  # one polyline of m samples per (span, cross line)
+        span_of = np.concatenate(span_ids)
+        spans = sum(spans_per_face)
+        d = np.diff(pts, axis=1)
+        size = np.linalg.norm(d, axis=2)
+        dn = d / np.maximum(size[:, :, None], 1e-300)
+        turn = np.arccos(np.clip(np.einsum("lmj,lmj->lm", dn[:, 1:], dn[:, :-1]), -1, 1))
+        length, second, turns = np.zeros(spans), np.zeros(spans), np.zeros(spans)
+        np.maximum.at(length, span_of, size.sum(axis=1))
+        np.maximum.at(second, span_of, np.linalg.norm(pts[:, 2:] - 2 * pts[:, 1:-1] + pts[:, :-2], axis=2).max(axis=1))
+        np.maximum.at(turns, span_of, turn.sum(axis=1) * (m - 1) / max(m - 2, 1))
+        turn = turns
+        n = np.maximum.reduce(
+            [
+                np.ones(len(length)),
+                np.ceil(length / settings.max_edge_mm),
+                np.ceil((m - 1) * np.sqrt(second / (8.0 * settings.deflection_mm))),
+                np.ceil(turn / settings.angular_deflection_rad),
+            ]
+        )
+        n = np.minimum(n * np.repeat(factor, spans_per_face), 1000).astype(np.int64)
+        out.append(np.split(n, np.cumsum(spans_per_face)[:-1]))
+    return out
+
+
+def _subdivide(breaks: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    parts = [np.linspace(a, b, n, endpoint=False) for a, b, n in zip(breaks[:-1], breaks[1:], counts)]
+    return np.concatenate(parts + [breaks[-1:]])
+
+
+def _grid_tessellation(sset: SurfaceSet, faces: list[int], reversed_faces: np.ndarray, settings, factor):
+    """Parameter-grid triangles of untrimmed spline faces, all faces in one batch.
+
+    Returns nodes, uv, triangles (local to this batch), node_face, triangle_face,
+    exact area per face (2x2 Gauss-Legendre per grid cell of |S_u x S_v|).
+    """
+    breaks = []
+    for f in faces:
+        s = sset.surfaces[f]
+        u0, u1, v0, v1 = s.bounds
+        breaks.append((_breaks(s.knots_u, u0, u1), _breaks(s.knots_v, v0, v1)))
+    counts_u, counts_v = _grid_counts(sset, faces, breaks, settings, factor)
+    uvs, tris, node_face, quads, quad_face = [], [], [], [], []
+    offset = 0
+    for f, (bu, bv), cu, cv in zip(faces, breaks, counts_u, counts_v):
+        gu, gv = _subdivide(bu, cu), _subdivide(bv, cv)
+        nu, nv = len(gu), len(gv)
+        uu, vv = np.meshgrid(gu, gv, indexing="ij")
+        uvs.append(np.column_stack([uu.ravel(), vv.ravel()]))
+        idx = np.arange(nu * nv).reshape(nu, nv) + offset
+        a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+        tri = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+        if reversed_faces[f]:
+            tri = tri[:, [0, 2, 1]]
+        tris.append(tri)
+        node_face.append(np.full(nu * nv, f))
+        q0u, q0v = np.meshgrid(gu[:-1], gv[:-1], indexing="ij")
+        q1u, q1v = np.meshgrid(gu[1:], gv[1:], indexing="ij")
+        quads.append(np.column_stack([q0u.ravel(), q1u.ravel(), q0v.ravel(), q1v.ravel()]))
+        quad_face.append(np.full(len(a), f))
+        offset += nu * nv
+    uv = np.concatenate(uvs)
+    node_face = np.concatenate(node_face)
+    triangles = np.concatenate(tris)
+    quads = np.concatenate(quads)
+    quad_face = np.concatenate(quad_face)
+    triangle_face = np.concatenate([np.full(len(t), f) for f, t in zip(faces, tris)])
+    # exact area: 2x2 Gauss-Legendre on every grid cell
+    g = 0.5 / np.sqrt(3.0)
+    mid_u, half_u = 0.5 * (quads[:, 0] + quads[:, 1]), quads[:, 1] - quads[:, 0]
+    mid_v, half_v = 0.5 * (quads[:, 2] + quads[:, 3]), quads[:, 3] - quads[:, 2]
+    gu = np.concatenate([mid_u - g * half_u, mid_u + g * half_u, mid_u - g * half_u, mid_u + g * half_u])
+    gv = np.concatenate([mid_v - g * half_v, mid_v - g * half_v, mid_v + g * half_v, mid_v + g * half_v])
+    _, su, sv = sset.evaluate(np.tile(quad_face, 4), gu, gv)
+    jac = np.linalg.norm(np.cross(su, sv), axis=1) * np.tile(0.25 * half_u * half_v, 4)
+    area = np.bincount(np.tile(quad_face, 4), weights=jac, minlength=len(sset.surfaces))
+    return uv, triangles, node_face, triangle_face, area
+
+
 def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellation:
     """Tessellate ``shape`` (any TopoDS_Shape with faces) and read it into numpy.
 
-    Raises KernelError when BRepMesh fails or leaves a face covered short of its
-    exact area by more than ``settings.coverage_tolerance``.
+    Untrimmed spline faces (B-spline, Bezier: :func:`is_natural`) are
+    tessellated on a parameter grid, all in one batch; other faces by BRepMesh,
+    read face by face and checked against their exact area. Raises KernelError
+    when BRepMesh fails or leaves a face covered short of its exact area by
+    more than ``settings.coverage_tolerance``.
     """
-    from OCP.BRep import BRep_Tool
-    from OCP.BRepMesh import BRepMesh_IncrementalMesh
     from OCP.TopAbs import TopAbs_REVERSED
-    from OCP.TopLoc import TopLoc_Location
 
     settings = settings or TessellationSettings()
-    if settings.deflection_mm <= 0:
-        raise InputError(f"deflection_mm must be > 0, got {settings.deflection_mm}")
+    if settings.deflection_mm <= 0 or settings.max_edge_mm <= 0 or settings.angular_deflection_rad <= 0:
+        raise InputError(
+            f"deflection_mm, max_edge_mm and angular_deflection_rad must be > 0, got {settings.deflection_mm}, "
+            f"{settings.max_edge_mm}, {settings.angular_deflection_rad}"
+        )
     faces = shape_faces(shape)
-    mesher = BRepMesh_IncrementalMesh(
-        shape, settings.deflection_mm, False, settings.angular_deflection_rad, True
-    )
-    if not mesher.IsDone():
-        raise KernelError("BRepMesh_IncrementalMesh failed on the shape")
-    verts, tris, uvs, node_face, tri_face = [], [], [], [], []
-    area_exact, area_mesh, surfaces, reversed_faces = [], [], [], []
-    offset = 0
-    for index, face in enumerate(faces):
-        loc = TopLoc_Location()
-        poly = BRep_Tool.Triangulation_s(face, loc)
-        if poly is None or poly.NbTriangles() == 0:
-            raise KernelError(f"face {index} has no triangulation after BRepMesh")
-        trsf = loc.Transformation()
-        nodes = np.array(
-            [
-                (p.X(), p.Y(), p.Z())
-                for p in (poly.Node(i).Transformed(trsf) for i in range(1, poly.NbNodes() + 1))
-            ]
-        )
-        uv = np.array(
-            [(q.X(), q.Y()) for q in (poly.UVNode(i) for i in range(1, poly.NbNodes() + 1))]
-        )
-        tri = np.array([poly.Triangle(i).Get() for i in range(1, poly.NbTriangles() + 1)]) - 1
-        is_reversed = face.Orientation() == TopAbs_REVERSED
-        if is_reversed:
-            tri = tri[:, [0, 2, 1]]
-        t = nodes[tri]
-        mesh_area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
-        exact = exact_face_area(face, settings.area_rel_eps)
-        if exact > 0 and (exact - mesh_area) / exact > settings.coverage_tolerance:
-            raise KernelError(
-                f"face {index}: tessellation covers {mesh_area:.4g} mm^2 of {exact:.4g} mm^2 "
-                f"({100 * mesh_area / exact:.2f} %); refusing a tessellation-based distance"
-            )
+    count = len(faces)
+    surfaces, natural, natives = [], [], []
+    for face in faces:
         surface, native = face_spline_surface(face)
-        if surface is not None and not native:
-            uv = _native_to_spline_uv(face, surface, uv, nodes)
-        nodes, uv, tri = _bisect_long_edges(nodes, uv, tri, surface, settings.max_edge_mm)
-        verts.append(nodes)
-        tris.append(tri + offset)
-        uvs.append(uv)
-        node_face.append(np.full(len(nodes), index))
-        tri_face.append(np.full(len(tri), index))
-        area_exact.append(exact)
-        area_mesh.append(mesh_area)
         surfaces.append(surface)
-        reversed_faces.append(is_reversed)
+        natives.append(native)
+        natural.append(surface is not None and native and is_natural(face, surface))
+    reversed_arr = np.array([face.Orientation() == TopAbs_REVERSED for face in faces], dtype=bool)
+    sset = SurfaceSet(surfaces)
+    grid_faces = [i for i in range(count) if natural[i]]
+    other_faces = [i for i in range(count) if not natural[i]]
+    area_exact = np.zeros(count)
+    uv_parts, tri_parts, nf_parts, tf_parts, vert_parts = [], [], [], [], []
+    offset = 0
+    if grid_faces:
+        # a grid face short of its area by more than the tolerance (a chordal
+        # shortfall on a small, tightly curved face) is gridded again, finer
+        factor = np.ones(len(grid_faces))
+        for _ in range(4):
+            uv, tri, nf, tf, area = _grid_tessellation(sset, grid_faces, reversed_arr, settings, factor)
+            nodes = sset.evaluate(nf, uv[:, 0], uv[:, 1])[0]
+            t = nodes[tri]
+            mesh = np.bincount(tf, weights=0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1),
+                               minlength=count)[grid_faces]
+            exact = area[grid_faces]
+            short = (exact > 0) & ((exact - mesh) / np.where(exact > 0, exact, 1.0) > settings.coverage_tolerance)
+            if not short.any():
+                break
+            factor[short] *= 2
+        area_exact[grid_faces] = area[grid_faces]
+        vert_parts.append(None)  # evaluated below with the normals
+        uv_parts.append(uv)
+        tri_parts.append(tri)
+        nf_parts.append(nf)
+        tf_parts.append(tf)
+        offset = len(uv)
+    for index in other_faces:
+        nodes, uv, tri, exact = brepmesh_face(
+            faces[index], index, surfaces[index], natives[index], reversed_arr[index], settings
+        )
+        area_exact[index] = exact
+        vert_parts.append(nodes)
+        uv_parts.append(uv)
+        tri_parts.append(tri + offset)
+        nf_parts.append(np.full(len(nodes), index))
+        tf_parts.append(np.full(len(tri), index))
         offset += len(nodes)
-    vertices = np.concatenate(verts)
-    triangles = np.concatenate(tris)
-    uv_all = np.concatenate(uvs)
-    node_face_all = np.concatenate(node_face)
-    tri_face_all = np.concatenate(tri_face)
-    reversed_arr = np.array(reversed_faces, dtype=bool)
+    uv_all = np.concatenate(uv_parts)
+    triangles = np.concatenate(tri_parts)
+    node_face_all = np.concatenate(nf_parts)
+    tri_face_all = np.concatenate(tf_parts)
+    vertices = np.zeros((len(uv_all), 3))
+    if grid_faces:
+        n_grid = len(uv_parts[0])
+        vertices[:n_grid] = sset.evaluate(node_face_all[:n_grid], uv_all[:n_grid, 0], uv_all[:n_grid, 1])[0]
+    if grid_faces:
+        # grid rows collapsed to a point (at poles) leave triangles with a zero-length edge: drop them
+        grid = np.arange(len(tri_parts[0]))  # the grid triangles come first
+        t = vertices[triangles[grid]]
+        scale = 1e-12 * max(1.0, float(np.abs(vertices[:n_grid]).max()))
+        dead = np.zeros(len(grid), dtype=bool)
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            dead |= np.linalg.norm(t[:, i] - t[:, j], axis=1) <= scale
+        if dead.any():
+            keep = np.ones(len(triangles), dtype=bool)
+            keep[grid[dead]] = False
+            triangles, tri_face_all = triangles[keep], tri_face_all[keep]
+    rest = [v for v in vert_parts if v is not None]
+    if rest:
+        vertices[offset - sum(len(v) for v in rest) :] = np.concatenate(rest)
+    # exact normals at every node with a spline surface
     normals = np.zeros_like(vertices)
-    chord = np.zeros(len(faces))
-    for index, surface in enumerate(surfaces):
-        sel = node_face_all == index
-        if surface is None:
-            continue
-        _, su, sv = _eval(surface, uv_all[sel])
+    has = np.flatnonzero(sset.group[node_face_all] >= 0)
+    if len(has):
+        _, su, sv = sset.evaluate(node_face_all[has], uv_all[has, 0], uv_all[has, 1])
         n = np.cross(su, sv)
         size = np.linalg.norm(n, axis=1, keepdims=True)
         # degenerate points (poles, collapsed rows): no surface normal; left to the mesh below
         good = size[:, 0] > 1e-10 * np.linalg.norm(su, axis=1) * np.linalg.norm(sv, axis=1)
         n = np.where(good[:, None], n / np.maximum(size, 1e-300), 0.0)
-        normals[sel] = -n if reversed_arr[index] else n
-        chord[index] = _chord_error(surface, vertices, uv_all, triangles[tri_face_all == index])
-    # faces without a spline: area-weighted triangle normals at the nodes
+        normals[has] = np.where(reversed_arr[node_face_all[has]][:, None], -n, n)
     missing = np.linalg.norm(normals, axis=1) == 0
     if missing.any():
         normals[missing] = vertex_normals(vertices, triangles)[missing]
+    t = vertices[triangles]
+    tri_area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    area_mesh = np.bincount(tri_face_all, weights=tri_area, minlength=count)
+    short = (area_exact > 0) & ((area_exact - area_mesh) / np.where(area_exact > 0, area_exact, 1.0) > settings.coverage_tolerance)
+    if short.any():
+        index = int(np.flatnonzero(short)[0])
+        raise KernelError(
+            f"face {index}: tessellation covers {area_mesh[index]:.4g} mm^2 of {area_exact[index]:.4g} mm^2 "
+            f"({100 * area_mesh[index] / area_exact[index]:.2f} %); refusing a tessellation-based distance"
+        )
+    chord = chord_errors(sset, vertices, uv_all, triangles, tri_face_all, count)
     return Tessellation(
         vertices=vertices,
         triangles=triangles,
@@ -307,13 +504,53 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
         normals=normals,
         node_face=node_face_all,
         triangle_face=tri_face_all,
-        face_area_exact_mm2=np.array(area_exact),
-        face_area_mesh_mm2=np.array(area_mesh),
+        face_area_exact_mm2=area_exact,
+        face_area_mesh_mm2=area_mesh,
         surfaces=tuple(surfaces),
         reversed_faces=reversed_arr,
         chord_error_mm=chord,
         faces=tuple(faces),
+        surface_set=sset,
     )
+
+
+def brepmesh_face(face, index: int, surface, native: bool, is_reversed: bool, settings):
+    """BRepMesh triangles of one (trimmed or analytic) face: nodes, uv on ``surface``, triangles, exact area."""
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepMesh import BRepMesh_IncrementalMesh
+    from OCP.TopLoc import TopLoc_Location
+
+    mesher = BRepMesh_IncrementalMesh(face, settings.deflection_mm, False, settings.angular_deflection_rad, True)
+    if not mesher.IsDone():
+        raise KernelError(f"BRepMesh_IncrementalMesh failed on face {index}")
+    loc = TopLoc_Location()
+    poly = BRep_Tool.Triangulation_s(face, loc)
+    if poly is None or poly.NbTriangles() == 0:
+        raise KernelError(f"face {index} has no triangulation after BRepMesh")
+    trsf = loc.Transformation()
+    count = poly.NbNodes()
+    nodes = np.empty((count, 3))
+    uv = np.empty((count, 2))
+    for i in range(count):
+        p = poly.Node(i + 1).Transformed(trsf)
+        q = poly.UVNode(i + 1)
+        nodes[i] = p.X(), p.Y(), p.Z()
+        uv[i] = q.X(), q.Y()
+    tri = np.array([poly.Triangle(i).Get() for i in range(1, poly.NbTriangles() + 1)], dtype=np.int64) - 1
+    if is_reversed:
+        tri = tri[:, [0, 2, 1]]
+    t = nodes[tri]
+    mesh_area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+    exact = exact_face_area(face, settings.area_rel_eps)
+    if exact > 0 and (exact - mesh_area) / exact > settings.coverage_tolerance:
+        raise KernelError(
+            f"face {index}: tessellation covers {mesh_area:.4g} mm^2 of {exact:.4g} mm^2 "
+            f"({100 * mesh_area / exact:.2f} %); refusing a tessellation-based distance"
+        )
+    if surface is not None and not native:
+        uv = _native_to_spline_uv(face, surface, uv, nodes)
+    nodes, uv, tri = _bisect_long_edges(nodes, uv, tri, surface, settings.max_edge_mm)
+    return nodes, uv, tri, exact
 
 
 def _eval(surface: SplineSurface, uv: np.ndarray):
@@ -322,23 +559,27 @@ def _eval(surface: SplineSurface, uv: np.ndarray):
     return evaluate(surface, uv[:, 0], uv[:, 1])
 
 
-def _chord_error(surface: SplineSurface, vertices, uv, triangles) -> float:
-    """Largest distance from triangle centroids and edge midpoints to the surface (mm).
+def chord_errors(sset: SurfaceSet, vertices, uv, triangles, triangle_face, face_count: int) -> np.ndarray:
+    """(F,) largest distance (mm) from sampled triangle points to the exact surface, per face.
 
-    Sampled at the centroid, the edge midpoints and the circumcentre (where the
-    chord error of a triangle on a sphere peaks): a measured value, by exact
-    projection, not BRepMesh's requested deflection (which BRepMesh exceeds
-    by 2x on spheres).
+    Sampled on every triangle at the centroid, the edge midpoints and the
+    circumcentre (where the chord error of a triangle inscribed in a sphere,
+    the osculating surface, peaks; for an obtuse triangle it is the middle of
+    the longest edge, sampled already). A measured value by exact projection,
+    not BRepMesh's requested deflection (which BRepMesh exceeds by 2x on
+    spheres). |p - S(uv)| at the sample's interpolated (u, v) is an upper
+    bound of its distance; only samples whose bound exceeds the largest exact
+    distance found so far on their face are projected, so the result is the
+    exact maximum over all samples at a fraction of the projections. Faces
+    without a spline surface get 0 (their triangles are the geometry).
     """
-    if len(triangles) == 0:
-        return 0.0
-    weights = np.array(
-        [[1 / 3, 1 / 3, 1 / 3], [0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [0.5, 0.0, 0.5]]
-    )
+    chord = np.zeros(face_count)
+    keep = sset.group[triangle_face] >= 0
+    if not keep.any():
+        return chord
+    triangles, triangle_face = triangles[keep], triangle_face[keep]
+    weights = np.array([[1 / 3, 1 / 3, 1 / 3], [0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [0.5, 0.0, 0.5]])
     t = vertices[triangles]
-    # circumcentre of acute triangles: where the chord error of a triangle
-    # inscribed in a sphere (the osculating surface) peaks; for an obtuse one
-    # it is the middle of the longest edge, sampled already
     a2 = np.sum((t[:, 1] - t[:, 2]) ** 2, axis=1)
     b2 = np.sum((t[:, 2] - t[:, 0]) ** 2, axis=1)
     c2 = np.sum((t[:, 0] - t[:, 1]) ** 2, axis=1)
@@ -349,10 +590,23 @@ def _chord_error(surface: SplineSurface, vertices, uv, triangles) -> float:
     bary = np.concatenate([np.broadcast_to(weights, (len(t), 4, 3)), cc[:, None, :]], axis=1)
     pts = np.einsum("mwk,mkj->mwj", bary, t).reshape(-1, 3)
     start = np.einsum("mwk,mkj->mwj", bary, uv[triangles]).reshape(-1, 2)
-    proj = project(surface, pts, start)
-    good = proj.residual_mm < 1e-6 + 1e-3 * np.linalg.norm(pts - proj.foot, axis=1)
-    d = np.linalg.norm(pts - proj.foot, axis=1)
-    return float(d[good].max()) if good.any() else float(d.max())
+    face = np.repeat(triangle_face, 5)
+    bound = np.linalg.norm(pts - sset.evaluate(face, start[:, 0], start[:, 1])[0], axis=1)
+
+    def exact(sel):
+        proj = project_faces(sset, face[sel], pts[sel], start[sel])
+        d = np.linalg.norm(pts[sel] - proj.foot, axis=1)
+        converged = proj.residual_mm < 1e-6 + 1e-3 * d
+        return np.where(converged, d, bound[sel])  # not converged: keep the upper bound
+
+    # round 1: each face's sample of largest bound; round 2: every sample that could beat it
+    order = np.lexsort((-bound, face))
+    first = order[np.r_[True, face[order][1:] != face[order][:-1]]]
+    np.maximum.at(chord, face[first], exact(first))
+    todo = np.flatnonzero(bound > chord[face])
+    if len(todo):
+        np.maximum.at(chord, face[todo], exact(todo))
+    return chord
 
 
 def _bisect_long_edges(nodes, uv, tri, surface, max_edge_mm: float):
