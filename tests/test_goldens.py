@@ -1,0 +1,58 @@
+"""CI regression of deviation histograms: the models of reference meshes against stored goldens.
+
+Update on purpose with ``BONECAD_UPDATE_GOLDENS=1 python -m pytest tests/test_goldens.py``.
+"""
+from __future__ import annotations
+
+import pytest
+
+import bonecad
+from bonecad.analysis.goldens import GoldenMismatch, assert_histogram_matches
+from bonecad.analysis.model import region_labels
+from bonecad.analysis.deviation import shape_deviation
+from bonecad.curves.contours import contour_curves
+
+from .conftest import TIBIA_DIR
+
+REFERENCES = ["LHDL_CT_tibia_no_fib_r", "TLEM2_CT_tibia_r"]
+SAMPLES = 100_000
+TOLERANCE = 0.01  # one percentage point of surface per 0.1 mm band
+
+
+def _nurbs_deviation(stem: str, perturb_mm: float = 0.0):
+    path = TIBIA_DIR / f"{stem}.stl"
+    if not path.exists():
+        pytest.skip(f"reference mesh {path} is absent")
+    from bonecad.nurbs.model import build_nurbs
+
+    bone = bonecad.load_bone(path)
+    frame = bonecad.anatomical_frame(bone)
+    shape = build_nurbs(contour_curves(bone, frame)).shape
+    if perturb_mm:
+        shape = _moved(shape, perturb_mm)
+    return shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=SAMPLES)
+
+
+def _moved(shape, distance_mm: float):
+    """The model moved sideways by ``distance_mm`` (a deliberately perturbed model)."""
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_Transform
+    from OCP.gp import gp_Trsf, gp_Vec
+
+    move = gp_Trsf()
+    move.SetTranslation(gp_Vec(distance_mm, 0.0, 0.0))
+    return BRepBuilderAPI_Transform(shape, move, True).Shape()
+
+
+@pytest.mark.parametrize("stem", REFERENCES)
+def test_nurbs_histogram_matches_golden(stem):
+    deviation = _nurbs_deviation(stem)
+    assert_histogram_matches(deviation.mesh_to_cad.histogram, f"nurbs_{stem}", tolerance=TOLERANCE)
+    for region, histogram in deviation.mesh_to_cad.region_histograms.items():
+        assert_histogram_matches(histogram, f"nurbs_{stem}_{region}", tolerance=TOLERANCE)
+
+
+def test_perturbed_model_is_caught():
+    deviation = _nurbs_deviation(REFERENCES[0], perturb_mm=0.15)
+    with pytest.raises(GoldenMismatch):
+        assert_histogram_matches(deviation.mesh_to_cad.histogram, f"nurbs_{REFERENCES[0]}", tolerance=TOLERANCE,
+                                 update=False)
