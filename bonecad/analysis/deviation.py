@@ -181,7 +181,7 @@ def signed_distance_to_shape(
     # are searched again, certified, below
     if certify is None:
         certify = tess.face_count > 1
-    near = locator.query(points, k=3 if certify else 4, certify=certify)
+    near = locator.query(points, k=8 if certify else 4, certify=certify)
     dist = np.empty(len(points))
     foot = np.empty((len(points), 3))
     face = tess.triangle_face[near.triangle]
