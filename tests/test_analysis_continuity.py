@@ -152,3 +152,33 @@ def test_frame_must_be_a_rotation():
         screen_axes(np.diag([1.0, 2.0, 1.0]), "anterior")
     with pytest.raises(InputError, match="view must be"):
         screen_axes(np.eye(3), "lateral")
+
+
+@pytest.mark.parametrize("kind", ["rational sphere", "bicubic with a double knot"])
+def test_batched_second_derivatives_match_opencascade(kind):
+    """SurfaceSet.evaluate2 (the batched seam evaluation) against BRepLProp_SLProps, point by point."""
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
+    from OCP.BRepLProp import BRepLProp_SLProps
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
+
+    from bonecad.analysis.nurbs_eval import SurfaceSet
+    from bonecad.analysis.tessellation import face_spline_surface, shape_faces
+
+    if kind == "rational sphere":
+        face = shape_faces(BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(40.0).Shape(), True).Shape())[0]
+    else:
+        face = two_patches(2)[1]
+    surface, native = face_spline_surface(face)
+    assert native
+    rng = np.random.default_rng(0)
+    u0, u1, v0, v1 = surface.bounds
+    u = rng.uniform(u0, u1, 40)
+    v = rng.uniform(v0 + 0.02 * (v1 - v0), v1 - 0.02 * (v1 - v0), 40)  # away from the sphere's poles
+    got = SurfaceSet([surface]).evaluate2(np.zeros(40, dtype=np.int64), u, v)
+    props = BRepLProp_SLProps(BRepAdaptor_Surface(face), 2, 1e-9)
+    for i in range(40):
+        props.SetParameters(float(u[i]), float(v[i]))
+        for k, vec in enumerate((props.Value(), props.D1U(), props.D1V(), props.D2U(), props.D2V(), props.DUV())):
+            want = np.array([vec.X(), vec.Y(), vec.Z()])
+            np.testing.assert_allclose(got[k][i], want, atol=1e-9 * (1 + np.abs(want).max()))

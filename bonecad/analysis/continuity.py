@@ -147,25 +147,17 @@ def _classify(gap, angle, jump, tol: ContinuityTolerances) -> str:
 
 
 def _face_props(face, uv: np.ndarray):
-    """Points, outward unit normals, and (D1U, D1V, D2U, D2V, DUV) at uv (S, 2)."""
+    """Points (S, 3) and derivatives (S, 5, 3): D1U, D1V, D2U, D2V, DUV at uv (S, 2), by OpenCascade."""
     from OCP.BRepAdaptor import BRepAdaptor_Surface
     from OCP.BRepLProp import BRepLProp_SLProps
-    from OCP.TopAbs import TopAbs_REVERSED
 
-    adaptor = BRepAdaptor_Surface(face)
-    props = BRepLProp_SLProps(adaptor, 2, 1e-9)
-    sign = -1.0 if face.Orientation() == TopAbs_REVERSED else 1.0
-    out = np.empty((len(uv), 7, 3))
+    props = BRepLProp_SLProps(BRepAdaptor_Surface(face), 2, 1e-9)
+    out = np.empty((len(uv), 6, 3))
     for i, (u, v) in enumerate(uv):
         props.SetParameters(float(u), float(v))
-        vecs = [props.Value(), props.D1U(), props.D1V(), props.D2U(), props.D2V(), props.DUV()]
-        out[i, 0] = vecs[0].X(), vecs[0].Y(), vecs[0].Z()
-        for k, vec in enumerate(vecs[1:], start=2):
+        for k, vec in enumerate((props.Value(), props.D1U(), props.D1V(), props.D2U(), props.D2V(), props.DUV())):
             out[i, k] = vec.X(), vec.Y(), vec.Z()
-    su, sv = out[:, 2], out[:, 3]
-    n = np.cross(su, sv)
-    n = sign * n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    return out[:, 0], n, out[:, 2:]
+    return out[:, 0], out[:, 1:]
 
 
 def _normal_curvature(derivs: np.ndarray, normal: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -190,88 +182,152 @@ def _normal_curvature(derivs: np.ndarray, normal: np.ndarray, direction: np.ndar
     return (ll * a * a + 2 * mm * a * b + nn * b * b) / first
 
 
+def _pcurve_samples(edge, face, ts: np.ndarray):
+    """(u, v) and d(u, v)/dt of ``edge``'s p-curve on ``face`` at edge parameters ``ts`` (S,).
+
+    A straight p-curve (iso-lines of spline patches) is evaluated in numpy after
+    checking its two end samples against OpenCascade; any other curve sample by sample.
+    """
+    from OCP.BRepAdaptor import BRepAdaptor_Curve2d
+    from OCP.GeomAbs import GeomAbs_Line
+    from OCP.gp import gp_Pnt2d, gp_Vec2d
+
+    pc = BRepAdaptor_Curve2d(edge, face)
+    if pc.GetType() == GeomAbs_Line:
+        line = pc.Line()
+        loc, dirn = line.Location(), line.Direction()
+        origin = np.array([loc.X(), loc.Y()])
+        step = np.array([dirn.X(), dirn.Y()])
+        uv = origin + ts[:, None] * step
+        ends = np.array([(q.X(), q.Y()) for q in (pc.Value(float(ts[0])), pc.Value(float(ts[-1])))])
+        scale = max(1.0, float(np.abs(uv).max()))
+        if np.abs(ends - uv[[0, -1]]).max() <= 1e-12 * scale:
+            return uv, np.broadcast_to(step, uv.shape)
+    uv = np.empty((len(ts), 2))
+    duv = np.empty((len(ts), 2))
+    for s, t in enumerate(ts):
+        p, d = gp_Pnt2d(), gp_Vec2d()
+        pc.D1(float(t), p, d)
+        uv[s] = p.X(), p.Y()
+        duv[s] = d.X(), d.Y()
+    return uv, duv
+
+
+def _face_surfaces(faces, tessellation) -> tuple:
+    """A SurfaceSet of the faces and a mask of those evaluated from it (native spline faces).
+
+    Native faces lie on their B-spline/Bezier surface with the face's own
+    parameters, so p-curve (u, v) evaluate directly; others go through OpenCascade.
+    """
+    from .nurbs_eval import SurfaceSet
+    from .tessellation import face_spline_surface
+
+    if tessellation is not None:
+        if tessellation.face_count != len(faces):
+            raise InputError(
+                f"tessellation has {tessellation.face_count} faces, the shape {len(faces)}: not its tessellation"
+            )
+        sset = tessellation.surface_set
+        native = np.asarray(tessellation.native_faces, dtype=bool) & (sset.group >= 0)
+        return sset, native
+    pairs = [face_spline_surface(face) for face in faces]
+    sset = SurfaceSet([surface if native else None for surface, native in pairs])
+    return sset, sset.group >= 0
+
+
 def seam_continuity(
-    shape, *, samples: int = 21, tolerances: ContinuityTolerances | None = None
+    shape, *, samples: int = 21, tolerances: ContinuityTolerances | None = None, tessellation=None
 ) -> SeamContinuity:
     """G0/G1/G2 measures along every edge of ``shape`` shared by two different faces.
 
     Degenerate edges and seams of one periodic face are skipped (the latter's
-    continuity is the face's own: see :func:`knot_continuity`).
+    continuity is the face's own: see :func:`knot_continuity`). Spline faces
+    are evaluated in one batch (``nurbs_eval.SurfaceSet``, second derivatives
+    included); ``tessellation``, a :class:`~.tessellation.Tessellation` of
+    ``shape``, lends its surfaces (else they are read from the faces).
     """
     from OCP.BRep import BRep_Tool
-    from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Curve2d
+    from OCP.BRepAdaptor import BRepAdaptor_Curve
     from OCP.GCPnts import GCPnts_AbscissaPoint
-    from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
+    from OCP.TopAbs import TopAbs_EDGE, TopAbs_REVERSED
     from OCP.TopExp import TopExp
     from OCP.TopoDS import TopoDS
-    from OCP.TopTools import TopTools_IndexedDataMapOfShapeListOfShape, TopTools_IndexedMapOfShape
-    from OCP.gp import gp_Pnt, gp_Vec
+    from OCP.TopTools import TopTools_IndexedMapOfShape
 
     tol = tolerances or ContinuityTolerances()
     if samples < 2:
         raise InputError(f"samples must be >= 2, got {samples}")
     faces = shape_faces(shape)
-    face_map = TopTools_IndexedMapOfShape()  # face -> its index, in shape_faces order (IsSame)
-    for face in faces:
-        face_map.Add(face)
-    edge_map = TopTools_IndexedDataMapOfShapeListOfShape()
-    TopExp.MapShapesAndAncestors_s(shape, TopAbs_EDGE, TopAbs_FACE, edge_map)
-    rows = []
-    for i in range(1, edge_map.Extent() + 1):
+    edge_map = TopTools_IndexedMapOfShape()
+    TopExp.MapShapes_s(shape, TopAbs_EDGE, edge_map)
+    # edge -> the faces holding it, each with the edge as that face holds it (first occurrence:
+    # a seam edge appears twice in its face); explored face by face, since iterating the
+    # ancestor lists of MapShapesAndAncestors from Python is ~100x slower
+    holders: dict[int, dict[int, object]] = {}
+    for k, face in enumerate(faces):
+        for e in _face_edges(face):
+            holders.setdefault(edge_map.FindIndex(e), {}).setdefault(k, e)
+    sset, batched = _face_surfaces(faces, tessellation)
+    reversed_faces = np.array([face.Orientation() == TopAbs_REVERSED for face in faces])
+    fraction = np.linspace(0.01, 0.99, samples)  # interior samples, the ends pulled in (ends meet corners)
+    pairs, lengths, sample_face, sample_uv, sample_duv = [], [], [], [], []
+    for i in sorted(holders):
+        if len(holders[i]) != 2:
+            continue  # free edge, seam of one face, or non-manifold
         edge = TopoDS.Edge_s(edge_map.FindKey(i))
         if BRep_Tool.Degenerated_s(edge):
             continue
-        ancestors = [TopoDS.Face_s(f) for f in edge_map.FindFromIndex(i)]
-        index = []
-        for f in ancestors:
-            k = face_map.FindIndex(f) - 1  # -1: not a face of the shape
-            if k >= 0 and k not in index:
-                index.append(k)
-        if len(index) != 2:
-            continue  # free edge, seam of one face, or non-manifold
         curve = BRepAdaptor_Curve(edge)
         t0, t1 = curve.FirstParameter(), curve.LastParameter()
-        # interior samples plus the two ends pulled in slightly (ends meet corners)
-        ts = t0 + (t1 - t0) * np.linspace(0.01, 0.99, samples)
-        tangents = np.empty((samples, 3))
-        for s, t in enumerate(ts):
-            p, d1 = gp_Pnt(), gp_Vec()
-            curve.D1(float(t), p, d1)
-            tangents[s] = d1.X(), d1.Y(), d1.Z()
-        tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
-        per_face = []
+        ts = t0 + (t1 - t0) * fraction
+        index = list(holders[i])
         for k in index:
-            face = faces[k]
-            # the edge as it lies in this face (orientation matters for seams only)
-            oriented = next(
-                TopoDS.Edge_s(e) for e in _face_edges(face) if TopoDS.Edge_s(e).IsSame(edge)
-            )
-            pc = BRepAdaptor_Curve2d(oriented, face)
-            uv = np.array([(q.X(), q.Y()) for q in (pc.Value(float(t)) for t in ts)])
-            per_face.append(_face_props(face, uv))
-        (p1, n1, d1_), (p2, n2, d2_) = per_face
-        gap = np.linalg.norm(p1 - p2, axis=1)
-        cosang = np.clip(np.einsum("ij,ij->i", n1, n2), -1.0, 1.0)
-        angle = np.degrees(np.arccos(cosang))
-        # each face's own direction across the edge (they coincide when G1 holds)
-        k1 = _normal_curvature(d1_, n1, _unit(np.cross(n1, tangents)))
-        k2 = _normal_curvature(d2_, n2, _unit(np.cross(n2, tangents)))
-        scale = np.maximum(np.maximum(np.abs(k1), np.abs(k2)), 1.0 / tol.curvature_radius_ref_mm)
-        jump = np.abs(k1 - k2) / scale
-        length = GCPnts_AbscissaPoint.Length_s(curve)
-        rows.append((index, length, gap, angle, jump))
-    if not rows:
+            uv, duv = _pcurve_samples(TopoDS.Edge_s(holders[i][k]), faces[k], ts)
+            sample_face.append(np.full(samples, k))
+            sample_uv.append(uv)
+            sample_duv.append(duv)
+        pairs.append(index)
+        lengths.append(GCPnts_AbscissaPoint.Length_s(curve))
+    if not pairs:
         empty = np.zeros((0, samples))
         return SeamContinuity(np.zeros((0, 2), int), np.zeros(0), empty, empty, empty, np.zeros(0, dtype=object), tol)
-    gap = np.array([r[2] for r in rows])
-    angle = np.array([r[3] for r in rows])
-    jump = np.array([r[4] for r in rows])
+    face_of = np.concatenate(sample_face)
+    uv = np.concatenate(sample_uv)
+    duv = np.concatenate(sample_duv)
+    point = np.empty((len(face_of), 3))
+    derivs = np.empty((len(face_of), 5, 3))  # S_u, S_v, S_uu, S_vv, S_uv
+    fast = batched[face_of]
+    if fast.any():
+        s, su, sv, suu, svv, suv = sset.evaluate2(face_of[fast], uv[fast, 0], uv[fast, 1])
+        point[fast] = s
+        derivs[fast] = np.stack([su, sv, suu, svv, suv], axis=1)
+    for k in np.unique(face_of[~fast]):
+        sel = np.flatnonzero((face_of == k) & ~fast)
+        point[sel], derivs[sel] = _face_props(faces[k], uv[sel])
+    normal = _unit(np.cross(derivs[:, 0], derivs[:, 1]))
+    normal[reversed_faces[face_of]] *= -1.0
+    edges = len(pairs)
+    point, normal, derivs = (a.reshape(edges, 2, samples, *a.shape[1:]) for a in (point, normal, derivs))
+    # the edge's tangent from the first face: S_u u' + S_v v' along its p-curve
+    duv = duv.reshape(edges, 2, samples, 2)
+    tangents = _unit(
+        (duv[:, 0, :, :1] * derivs[:, 0, :, 0] + duv[:, 0, :, 1:] * derivs[:, 0, :, 1]).reshape(-1, 3)
+    )
+    n1, n2 = normal[:, 0].reshape(-1, 3), normal[:, 1].reshape(-1, 3)
+    gap = np.linalg.norm(point[:, 0] - point[:, 1], axis=2)
+    angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n1, n2), -1.0, 1.0))).reshape(edges, samples)
+    # each face's own direction across the edge (they coincide when G1 holds)
+    k1 = _normal_curvature(derivs[:, 0].reshape(-1, 5, 3), n1, _unit(np.cross(n1, tangents)))
+    k2 = _normal_curvature(derivs[:, 1].reshape(-1, 5, 3), n2, _unit(np.cross(n2, tangents)))
+    scale = np.maximum(np.maximum(np.abs(k1), np.abs(k2)), 1.0 / tol.curvature_radius_ref_mm)
+    jump = (np.abs(k1 - k2) / scale).reshape(edges, samples)
     classes = np.array(
-        [_classify(g.max(), a.max(), j.max(), tol) for g, a, j in zip(gap, angle, jump)], dtype=object
+        [_classify(g, a, j, tol) for g, a, j in zip(gap.max(axis=1), angle.max(axis=1), jump.max(axis=1))],
+        dtype=object,
     )
     return SeamContinuity(
-        faces=np.array([r[0] for r in rows], dtype=np.int64),
-        length_mm=np.array([r[1] for r in rows]),
+        faces=np.array(pairs, dtype=np.int64),
+        length_mm=np.array(lengths),
         gap_mm=gap,
         angle_deg=angle,
         curvature_jump=jump,

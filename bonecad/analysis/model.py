@@ -52,7 +52,7 @@ def analyse_model(
     deviation = shape_deviation(
         bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=sample_points, tessellation=tess
     )
-    continuity = seam_continuity(shape)
+    continuity = seam_continuity(shape, tessellation=tess)
     knots = knot_continuity(shape)
     figures = {
         "deviation": deviation_map_png(

@@ -163,6 +163,57 @@ def _basis_at_span(knots: np.ndarray, degree: int, t: np.ndarray, span: np.ndarr
     return values, derivs
 
 
+def _basis_ders_at_span(knots: np.ndarray, degree: int, t: np.ndarray, span: np.ndarray, order: int) -> np.ndarray:
+    """Basis functions and their derivatives up to ``order``: (order + 1, N, p+1) at ``t`` (NURBS Book A2.3)."""
+    p = degree
+    count = len(t)
+
+    def div(a, b):
+        return np.divide(a, b, out=np.zeros(count), where=b != 0)
+
+    ndu = np.zeros((p + 1, p + 1, count))  # upper triangle: basis values; lower: knot differences
+    ndu[0, 0] = 1.0
+    left = np.zeros((p + 1, count))
+    right = np.zeros((p + 1, count))
+    for j in range(1, p + 1):
+        left[j] = t - knots[span + 1 - j]
+        right[j] = knots[span + j] - t
+        saved = np.zeros(count)
+        for r in range(j):
+            ndu[j, r] = right[r + 1] + left[j - r]
+            temp = div(ndu[r, j - 1], ndu[j, r])
+            ndu[r, j] = saved + right[r + 1] * temp
+            saved = left[j - r] * temp
+        ndu[j, j] = saved
+    ders = np.zeros((order + 1, count, p + 1))
+    ders[0] = ndu[:, p].T
+    for r in range(p + 1):
+        a = np.zeros((2, p + 1, count))
+        a[0, 0] = 1.0
+        s1, s2 = 0, 1
+        for k in range(1, order + 1):
+            d = np.zeros(count)
+            rk, pk = r - k, p - k
+            if r >= k:
+                a[s2, 0] = div(a[s1, 0], ndu[pk + 1, rk])
+                d += a[s2, 0] * ndu[rk, pk]
+            j1 = 1 if rk >= -1 else -rk
+            j2 = k - 1 if r - 1 <= pk else p - r
+            for j in range(j1, j2 + 1):
+                a[s2, j] = div(a[s1, j] - a[s1, j - 1], ndu[pk + 1, rk + j])
+                d += a[s2, j] * ndu[rk + j, pk]
+            if r <= pk:
+                a[s2, k] = div(-a[s1, k - 1], ndu[pk + 1, r])
+                d += a[s2, k] * ndu[r, pk]
+            ders[k, :, r] = d
+            s1, s2 = s2, s1
+    factor = p
+    for k in range(1, order + 1):
+        ders[k] *= factor
+        factor *= p - k
+    return ders
+
+
 class _Packed:
     """Surfaces of one degree pair with their knots and poles concatenated (one direction per knot array)."""
 
@@ -220,6 +271,31 @@ class _Packed:
         return point, (swu[:, :3] - swu[:, 3:4] * point) / w, (swv[:, :3] - swv[:, 3:4] * point) / w
 
 
+    def evaluate2(self, local: np.ndarray, u: np.ndarray, v: np.ndarray):
+        """Points, first and second partials: S, S_u, S_v, S_uu, S_vv, S_uv ((N, 3) each; NURBS Book eq. 4.20)."""
+        p, q = self.p, self.q
+        su = self._span(self.ku_key, self.ku_off, self.nbu, p, self.lo_u, self.len_u, local, u)
+        sv = self._span(self.kv_key, self.kv_off, self.nbv, q, self.lo_v, self.len_v, local, v)
+        bu = _basis_ders_at_span(self.ku, p, u, su, 2)  # (3, N, p+1)
+        bv = _basis_ders_at_span(self.kv, q, v, sv, 2)
+        ids = self.block_off[local] + (su - self.ku_off[local] - p) * self.spans_v[local] + (
+            sv - self.kv_off[local] - q
+        )
+        block = np.take(self.blocks, ids, axis=0).reshape(len(ids), p + 1, q + 1, 4)
+        along_u = np.einsum("kna,nabc->knbc", bu, block)  # (3, N, q+1, 4): d^k/du^k
+        h = {}
+        for ku, kv in ((0, 0), (1, 0), (0, 1), (2, 0), (0, 2), (1, 1)):
+            h[ku, kv] = np.einsum("nb,nbc->nc", bv[kv], along_u[ku])
+        w = h[0, 0][:, 3:4]
+        s = h[0, 0][:, :3] / w
+        s_u = (h[1, 0][:, :3] - h[1, 0][:, 3:4] * s) / w
+        s_v = (h[0, 1][:, :3] - h[0, 1][:, 3:4] * s) / w
+        s_uu = (h[2, 0][:, :3] - 2 * h[1, 0][:, 3:4] * s_u - h[2, 0][:, 3:4] * s) / w
+        s_vv = (h[0, 2][:, :3] - 2 * h[0, 1][:, 3:4] * s_v - h[0, 2][:, 3:4] * s) / w
+        s_uv = (h[1, 1][:, :3] - h[1, 0][:, 3:4] * s_v - h[0, 1][:, 3:4] * s_u - h[1, 1][:, 3:4] * s) / w
+        return s, s_u, s_v, s_uu, s_vv, s_uv
+
+
 class SurfaceSet:
     """Many spline surfaces (one per face) evaluated and projected onto together.
 
@@ -249,22 +325,30 @@ class SurfaceSet:
             self.local[members] = np.arange(len(members))
             self._packs.append(_Packed([self.surfaces[f] for f in members]))
 
-    def evaluate(self, face: np.ndarray, u: np.ndarray, v: np.ndarray):
-        """Points and first partials (three (N, 3) arrays) at (u, v) on faces ``face`` (N,)."""
+    def _dispatch(self, method: str, count: int, face, u, v):
+        """Call ``_Packed.<method>`` on each degree group's points; ``count`` (N, 3) results."""
         face = np.asarray(face, dtype=np.int64)
         u = np.asarray(u, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
         if len(self._packs) == 1 and (self.group[face] == 0).all():
-            return self._packs[0].evaluate(self.local[face], u, v)
+            return getattr(self._packs[0], method)(self.local[face], u, v)
         if (self.group[face] < 0).any():
             raise InputError("cannot evaluate faces without a spline surface")
-        out = [np.empty((len(face), 3)) for _ in range(3)]
+        out = [np.empty((len(face), 3)) for _ in range(count)]
         for g, pack in enumerate(self._packs):
             sel = np.flatnonzero(self.group[face] == g)
             if len(sel):
-                for arr, val in zip(out, pack.evaluate(self.local[face[sel]], u[sel], v[sel])):
+                for arr, val in zip(out, getattr(pack, method)(self.local[face[sel]], u[sel], v[sel])):
                     arr[sel] = val
         return tuple(out)
+
+    def evaluate(self, face: np.ndarray, u: np.ndarray, v: np.ndarray):
+        """Points and first partials (three (N, 3) arrays) at (u, v) on faces ``face`` (N,)."""
+        return self._dispatch("evaluate", 3, face, u, v)
+
+    def evaluate2(self, face: np.ndarray, u: np.ndarray, v: np.ndarray):
+        """Points, first and second partials (S, S_u, S_v, S_uu, S_vv, S_uv; (N, 3) each) on faces ``face``."""
+        return self._dispatch("evaluate2", 6, face, u, v)
 
 
 def project_faces(

@@ -86,10 +86,13 @@ class Tessellation:
     chord_error_mm: np.ndarray
     faces: tuple  # TopoDS_Face, in the order of the face index
     surface_set: SurfaceSet | None = None  # the surfaces packed for batched evaluation
+    native_faces: np.ndarray | None = None  # (F,) bool, the face lies on its spline surface with the same (u, v)
 
     def __post_init__(self) -> None:
         if self.surface_set is None:
             object.__setattr__(self, "surface_set", SurfaceSet(self.surfaces))
+        if self.native_faces is None:
+            object.__setattr__(self, "native_faces", np.zeros(len(self.surfaces), dtype=bool))
 
     @property
     def face_count(self) -> int:
@@ -126,6 +129,11 @@ def exact_face_area(face, rel_eps: float = 1e-6) -> float:
     props = GProp_GProps()
     BRepGProp.SurfaceProperties_s(face, props, rel_eps)
     return float(props.Mass())
+
+
+def _array1(values) -> np.ndarray:
+    """An OCP TColStd_Array1OfReal as a numpy array (``list()`` on it is ~50x slower)."""
+    return np.array([values.Value(i) for i in range(values.Lower(), values.Upper() + 1)], dtype=np.float64)
 
 
 def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
@@ -167,14 +175,15 @@ def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
             bs.SetVNotPeriodic()
     except Standard_Failure:
         return None, False
-    knots_u = np.array(list(bs.UKnotSequence()), dtype=np.float64)
-    knots_v = np.array(list(bs.VKnotSequence()), dtype=np.float64)
+    knots_u = _array1(bs.UKnotSequence())
+    knots_v = _array1(bs.VKnotSequence())
     nu, nv = bs.NbUPoles(), bs.NbVPoles()
     poles = np.empty((nu, nv, 4))
+    rational = bs.IsURational() or bs.IsVRational()
     for i in range(1, nu + 1):
         for j in range(1, nv + 1):
             p = bs.Pole(i, j)
-            w = bs.Weight(i, j)
+            w = bs.Weight(i, j) if rational else 1.0
             poles[i - 1, j - 1] = (w * p.X(), w * p.Y(), w * p.Z(), w)
     if native:
         bounds = np.array([u0, u1, v0, v1])
@@ -511,6 +520,7 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
         chord_error_mm=chord,
         faces=tuple(faces),
         surface_set=sset,
+        native_faces=np.array(natives, dtype=bool),
     )
 
 
