@@ -23,6 +23,7 @@ new line crosses are touched, so the number of control points grows locally.
 """
 from __future__ import annotations
 
+from bisect import bisect_right
 from dataclasses import dataclass
 from typing import Literal, Sequence
 
@@ -177,30 +178,74 @@ def _make_suitable(edges: _Edges) -> TMesh:
     raise KernelError("refinement: analysis-suitability closure did not converge")
 
 
+def _crossings(mask: np.ndarray) -> list[list[int]]:
+    """Per row of a (R, L) bool mask, the sorted column indices where it holds."""
+    rows, cols = np.nonzero(mask)
+    bounds = np.searchsorted(rows, np.arange(mask.shape[0] + 1))
+    cols = cols.tolist()
+    return [cols[a:b] for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist())]
+
+
+def _first_missing(lines: list[int], knots: tuple, period: int | None) -> int | None:
+    """Smallest line strictly inside (knots[0], knots[4]) that is not one of ``knots``.
+
+    lines : sorted line indices crossing the ray (one period when ``period``
+    is given; the knots are unwrapped indices then, and so is the answer).
+    """
+    lo, hi = knots[0], knots[4]
+    if period is None:
+        shifts = (0,)
+    else:
+        shifts = range((lo // period) * period, (hi // period) * period + 1, period)
+    for shift in shifts:
+        k = bisect_right(lines, lo - shift)
+        while k < len(lines):
+            x = lines[k] + shift
+            if x >= hi:
+                break
+            if x not in knots:
+                return x
+            k += 1
+    return None
+
+
 def _split_pieces(mesh: TMesh, pieces: dict, todo: list) -> None:
-    """Split pieces by Boehm insertion of every knot the mesh's rays demand."""
+    """Split pieces by Boehm insertion of every knot the mesh's rays demand.
+
+    The knot lines crossing each ray are looked up in per-row sorted lists
+    (bisection), so a piece costs O(log n) plus the few knots it checks.
+    """
     s_n = mesh.shape[0]
-    on_t, on_s = mesh.on_t, mesh.on_s
+    rows_s = _crossings(mesh.on_t.T)  # per t-line: s-lines crossing it
+    rows_t = _crossings(mesh.on_s)  # per s-line: t-lines crossing it
+    period = s_n if mesh.periodic else None
+    s_vals = mesh.s_lines.tolist()
+    t_vals = mesh.t_lines.tolist()
+    s_period = mesh.s_period or 0.0
+
+    def s_value(i: int) -> float:
+        q, r = divmod(i, s_n)
+        return s_vals[r] + q * s_period
+
     while todo:
         key = todo.pop()
         if key not in pieces:
             continue
         sv, tv = key
-        cross = np.flatnonzero(on_t[:, tv[2]])
-        if mesh.periodic:
-            cross = (cross[None, :] + s_n * np.arange(sv[0] // s_n, sv[4] // s_n + 1)[:, None]).ravel()
-        miss = cross[(cross > sv[0]) & (cross < sv[4]) & ~np.isin(cross, sv)]
+        k = _first_missing(rows_s[tv[2]], sv, period)
         axis = 0
-        if miss.size == 0:
-            cross = np.flatnonzero(on_s[sv[2] % s_n, :])
-            miss = cross[(cross > tv[0]) & (cross < tv[4]) & ~np.isin(cross, tv)]
+        if k is None:
+            k = _first_missing(rows_t[sv[2] % s_n], tv, None)
             axis = 1
-            if miss.size == 0:
+            if k is None:
                 continue
-        k = int(miss[0])
         old = sv if axis == 0 else tv
-        vals = mesh.s_value(np.array(old)) if axis == 0 else mesh.t_lines[np.array(old)]
-        kval = float(mesh.s_value(k)) if axis == 0 else float(mesh.t_lines[k])
+        if axis == 0:
+            vals = [s_value(x) for x in old]
+            kval = s_value(k)
+        else:
+            vals = [t_vals[x] for x in old]
+            kval = t_vals[k]
         c1, c2 = split_coefficients(vals, kval)
         six = tuple(sorted(old + (k,)))
         coef = pieces.pop(key)

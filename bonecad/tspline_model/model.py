@@ -32,7 +32,7 @@ from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.tspline import TSpline, to_dict
 
 from .caps import ApexCap, build_cap
-from .fit import FitResult, FitTolerances, fit_adaptive, initial_parameters
+from .fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm
 from .skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger("bonecad")
@@ -128,6 +128,7 @@ def tolerances(settings: dict) -> FitTolerances:
         max_rounds=int(settings["max_rounds"]),
         min_element_mm=float(settings["min_element_mm"]),
         mark_fraction=float(settings["mark_fraction"]),
+        noise_factor=float(settings["noise_factor"]),
     )
 
 
@@ -204,6 +205,7 @@ def build_tspline_model(
     st = tspline_settings(config)
     tol = tolerances(st)
     fair = float(st["fairness_weight"])
+    fit_fair = float(st["fit_fairness_weight"])
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
@@ -224,7 +226,9 @@ def build_tspline_model(
 
     clock = time.perf_counter()
     s0, t0, _ = initial_parameters(ts0, pts)
-    fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fair, mode="local", constraints=rings)
+    noise = local_noise_mm(pts, neighbours=int(st["noise_neighbours"]))
+    fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
+                       constraints=rings, noise=noise)
     timings["fit"] = time.perf_counter() - clock
     if not fit.converged:
         log.warning("T-spline fit stopped before the tolerances held: %s (%s)", fit.stopped, fit.stats.to_dict())
@@ -237,8 +241,8 @@ def build_tspline_model(
                             t_spacing_mm=float(st["initial_t_spacing_mm"]), apex_rows=0)
         tp0, _, _ = skin(contours, par, grid, fairness=fair)
         s1, t1, _ = initial_parameters(tp0, pts)
-        tp_fit = fit_adaptive(tp0, pts, w, s=s1, t=t1, tolerances=tol, fairness=fair, mode="global",
-                              constraints=rings)
+        tp_fit = fit_adaptive(tp0, pts, w, s=s1, t=t1, tolerances=tol, fairness=fit_fair, mode="global",
+                              constraints=rings, noise=noise)
         timings["tensor_product"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
