@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bonecad.analysis.closest import TriangleLocator
-from bonecad.analysis.deviation import sample_surface, shape_deviation, signed_distance_to_shape
+from bonecad.analysis.deviation import sample_shape, sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.analysis.statistics import band_edges, deviation_stats, histogram, weighted_percentiles
 from bonecad.analysis.tessellation import TessellationSettings, tessellate
 from bonecad.config import load_config
@@ -91,6 +91,20 @@ def test_sphere_against_its_own_tessellation_is_at_the_tessellation_bound(sphere
     assert back.stats.max_inside_mm <= bound + 1e-9
     assert back.stats.max_outside_mm <= 1e-9
     assert back.stats.area_mm2 == pytest.approx(4 * np.pi * RADIUS**2, rel=1e-5)
+
+
+def test_shape_samples_lie_on_the_exact_surface_with_area_weights(sphere):
+    """Caps of a sphere (area 2 pi R h): their weighted share of samples drawn on a coarse tessellation."""
+    coarse = tessellate(sphere, TessellationSettings(deflection_mm=0.05))
+    count = 100000
+    points, weights, on_surface = sample_shape(coarse, count, seed=2)
+    assert on_surface.all()
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), RADIUS, atol=1e-9)
+    assert weights.sum() == pytest.approx(4 * np.pi * RADIUS**2, rel=1e-5)
+    for height in (0.0, 5.0, 9.0):
+        share = (RADIUS - height) / (2 * RADIUS)
+        got = weights[points[:, 2] > height].sum() / weights.sum()
+        assert abs(got - share) <= 4 * np.sqrt(share * (1 - share) / count)  # 4 standard errors
 
 
 def test_sign_is_positive_for_a_mesh_outside_the_model(sphere, sphere_fine):

@@ -89,7 +89,8 @@ class DirectionResult:
 
     points : (N, 3) sample points, mm; deviation_mm : (N,) signed (see module doc)
     weights : (N,) mm^2; labels : (N,) region names ('' when no regions were given)
-    refined : (N,) bool, distance from exact projection (False: tessellation/mesh based)
+    refined : (N,) bool, mesh -> CAD: distance from exact projection (False: tessellation based);
+        CAD -> mesh: the sample lies on the exact surface (:func:`sample_shape`)
     """
 
     points: np.ndarray
@@ -209,6 +210,44 @@ def signed_distance_to_shape(
     return SignedDistance(dist, foot, refined, face)
 
 
+def sample_shape(tess: Tessellation, count: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` area-weighted samples on the exact surface of a tessellated shape.
+
+    A triangle is drawn by its flat area and a point in it by uniform barycentric
+    weights; on a face with a spline surface the sample is S(u, v) at the
+    interpolated parameters, exactly on the surface with no projection. Its
+    density on the surface is then proportional to flat area / (uv area x
+    |S_u x S_v|), so each sample is weighted by |S_u x S_v| x uv area / flat area
+    (importance sampling: unbiased exact area per triangle). Weights are scaled
+    to sum to the exact area of the shape. Returns points (count, 3), weights
+    (count,) mm^2, and on_surface (count,) bool (False: a face without a spline
+    surface, whose triangles are the geometry).
+    """
+    samples = sample_surface(tess.vertices, tess.triangles, count, seed=seed)
+    points = samples.points.copy()
+    weights = samples.weights.copy()
+    on_surface = np.zeros(count, dtype=bool)
+    face = tess.triangle_face[samples.triangle]
+    sset = tess.surface_set
+    sel = np.flatnonzero(sset.group[face] >= 0)
+    if len(sel):
+        t = samples.triangle[sel]
+        tri_uv = tess.uv[tess.triangles[t]]
+        uv = np.einsum("nk,nkj->nj", samples.barycentric[sel], tri_uv)
+        s, su, sv = sset.evaluate(face[sel], uv[:, 0], uv[:, 1])
+        e1, e2 = tri_uv[:, 1] - tri_uv[:, 0], tri_uv[:, 2] - tri_uv[:, 0]
+        uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        flat = tess.triangle_areas()[t]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.linalg.norm(np.cross(su, sv), axis=1) * uv_area / flat
+        ok = np.isfinite(ratio) & (flat > 0)
+        points[sel[ok]] = s[ok]
+        weights[sel[ok]] *= ratio[ok]
+        on_surface[sel[ok]] = True
+    weights *= tess.face_area_exact_mm2.sum() / weights.sum()
+    return points, weights, on_surface
+
+
 def _labels(points: np.ndarray, regions: RegionSpec) -> np.ndarray:
     if regions is None:
         return np.full(len(points), "", dtype=object)
@@ -289,26 +328,12 @@ def shape_deviation(
     timings["mesh_to_cad"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    cad = sample_surface(tess.vertices, tess.triangles, count, seed=seed + 1)
-    # snap the samples onto the exact surface, and weight by exact area
-    cad_points = cad.points.copy()
-    face = tess.triangle_face[cad.triangle]
-    tri = tess.triangles[cad.triangle]
-    uv = np.einsum("nk,nkj->nj", cad.barycentric, tess.uv[tri])
-    snapped = np.zeros(count, dtype=bool)
-    sset = tess.surface_set
-    sel = np.flatnonzero(sset.group[face] >= 0)
-    if len(sel):
-        proj = project_faces(sset, face[sel], cad_points[sel], uv[sel])
-        ok = proj.residual_mm <= 1e-6
-        cad_points[sel[ok]] = proj.foot[ok]
-        snapped[sel[ok]] = True
-    weights = cad.weights * (tess.face_area_exact_mm2.sum() / tess.face_area_mesh_mm2.sum())
+    cad_points, weights, on_surface = sample_shape(tess, count, seed=seed + 1)
     locator = TriangleLocator(vertices, faces)
     near = locator.query(cad_points)
     normal = np.einsum("nk,nkj->nj", near.barycentric, vertex_normals(vertices, faces)[faces[near.triangle]])
     back_dev = -_signed(cad_points, near.points, normal)
-    backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), snapped)
+    backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), on_surface)
     timings["cad_to_mesh"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     vertex_dev = signed_distance_to_shape(vertices, tess).distance_mm
