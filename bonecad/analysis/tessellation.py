@@ -393,6 +393,50 @@ def _grid_tessellation(sset: SurfaceSet, faces: list[int], reversed_faces: np.nd
     return uv, triangles, node_face, triangle_face, area
 
 
+def _refined_grid(sset: SurfaceSet, grid_faces: list[int], reversed_faces: np.ndarray, settings, count: int):
+    """Grid tessellation of ``grid_faces``; a face short of its exact area by more than the
+    coverage tolerance (a chordal shortfall on a small, tightly curved face) is gridded
+    again, twice as fine, up to three times; only those faces are redone.
+
+    Returns uv, triangles, node_face, triangle_face (as :func:`_grid_tessellation`),
+    exact area (count,) and the evaluation (S, S_u, S_v) at the nodes.
+    """
+    batches = []
+    todo = np.asarray(grid_faces, dtype=np.int64)
+    factor = np.ones(count)
+    area = np.zeros(count)
+    for attempt in range(4):
+        uv, tri, nf, tf, batch_area = _grid_tessellation(sset, todo.tolist(), reversed_faces, settings, factor[todo])
+        s, su, sv = sset.evaluate(nf, uv[:, 0], uv[:, 1])
+        batches.append((uv, tri, nf, tf, s, su, sv))
+        area[todo] = batch_area[todo]
+        t = s[tri]
+        mesh = np.bincount(tf, weights=0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1),
+                           minlength=count)[todo]
+        exact = area[todo]
+        short = (exact > 0) & ((exact - mesh) / np.where(exact > 0, exact, 1.0) > settings.coverage_tolerance)
+        if not short.any() or attempt == 3:
+            break
+        todo = todo[short]
+        factor[todo] *= 2
+    # each face keeps its last gridding
+    last = np.full(count, -1)
+    for b, batch in enumerate(batches):
+        last[np.unique(batch[2])] = b
+    parts = [[] for _ in range(7)]
+    offset = 0
+    for b, (uv, tri, nf, tf, s, su, sv) in enumerate(batches):
+        keep_node = last[nf] == b
+        keep_tri = last[tf] == b
+        remap = np.cumsum(keep_node) - 1 + offset
+        for part, arr in zip(parts, (uv[keep_node], remap[tri[keep_tri]], nf[keep_node], tf[keep_tri],
+                                     s[keep_node], su[keep_node], sv[keep_node])):
+            part.append(arr)
+        offset += int(keep_node.sum())
+    uv, tri, nf, tf, s, su, sv = (np.concatenate(part) for part in parts)
+    return uv, tri, nf, tf, area, (s, su, sv)
+
+
 def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellation:
     """Tessellate ``shape`` (any TopoDS_Shape with faces) and read it into numpy.
 
@@ -425,23 +469,11 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
     area_exact = np.zeros(count)
     uv_parts, tri_parts, nf_parts, tf_parts, vert_parts = [], [], [], [], []
     offset = 0
+    grid_eval = None
     if grid_faces:
-        # a grid face short of its area by more than the tolerance (a chordal
-        # shortfall on a small, tightly curved face) is gridded again, finer
-        factor = np.ones(len(grid_faces))
-        for _ in range(4):
-            uv, tri, nf, tf, area = _grid_tessellation(sset, grid_faces, reversed_arr, settings, factor)
-            nodes = sset.evaluate(nf, uv[:, 0], uv[:, 1])[0]
-            t = nodes[tri]
-            mesh = np.bincount(tf, weights=0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1),
-                               minlength=count)[grid_faces]
-            exact = area[grid_faces]
-            short = (exact > 0) & ((exact - mesh) / np.where(exact > 0, exact, 1.0) > settings.coverage_tolerance)
-            if not short.any():
-                break
-            factor[short] *= 2
+        uv, tri, nf, tf, area, grid_eval = _refined_grid(sset, grid_faces, reversed_arr, settings, count)
         area_exact[grid_faces] = area[grid_faces]
-        vert_parts.append(None)  # evaluated below with the normals
+        vert_parts.append(None)  # evaluated with the grid
         uv_parts.append(uv)
         tri_parts.append(tri)
         nf_parts.append(nf)
@@ -465,7 +497,7 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
     vertices = np.zeros((len(uv_all), 3))
     if grid_faces:
         n_grid = len(uv_parts[0])
-        vertices[:n_grid] = sset.evaluate(node_face_all[:n_grid], uv_all[:n_grid, 0], uv_all[:n_grid, 1])[0]
+        vertices[:n_grid] = grid_eval[0]
     if grid_faces:
         # grid rows collapsed to a point (at poles) leave triangles with a zero-length edge: drop them
         grid = np.arange(len(tri_parts[0]))  # the grid triangles come first
@@ -485,7 +517,15 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
     normals = np.zeros_like(vertices)
     has = np.flatnonzero(sset.group[node_face_all] >= 0)
     if len(has):
-        _, su, sv = sset.evaluate(node_face_all[has], uv_all[has, 0], uv_all[has, 1])
+        su, sv = np.empty((len(has), 3)), np.empty((len(has), 3))
+        n_grid = len(grid_eval[0]) if grid_faces else 0  # grid nodes come first, already evaluated
+        in_grid = has < n_grid
+        su[in_grid], sv[in_grid] = grid_eval[1][has[in_grid]], grid_eval[2][has[in_grid]]
+        if not in_grid.all():
+            rest_nodes = has[~in_grid]
+            _, su[~in_grid], sv[~in_grid] = sset.evaluate(
+                node_face_all[rest_nodes], uv_all[rest_nodes, 0], uv_all[rest_nodes, 1]
+            )
         n = np.cross(su, sv)
         size = np.linalg.norm(n, axis=1, keepdims=True)
         # degenerate points (poles, collapsed rows): no surface normal; left to the mesh below
