@@ -520,7 +520,8 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
         su, sv = np.empty((len(has), 3)), np.empty((len(has), 3))
         n_grid = len(grid_eval[0]) if grid_faces else 0  # grid nodes come first, already evaluated
         in_grid = has < n_grid
-        su[in_grid], sv[in_grid] = grid_eval[1][has[in_grid]], grid_eval[2][has[in_grid]]
+        if in_grid.any():
+            su[in_grid], sv[in_grid] = grid_eval[1][has[in_grid]], grid_eval[2][has[in_grid]]
         if not in_grid.all():
             rest_nodes = has[~in_grid]
             _, su[~in_grid], sv[~in_grid] = sset.evaluate(
