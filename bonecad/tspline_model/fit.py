@@ -445,7 +445,7 @@ def fit_adaptive(
                 ts = solve_control_points(ts, np.concatenate([s, cs_]), np.concatenate([t, ct_]),
                                           np.vstack([points, cp_]), np.concatenate([w, cw_]),
                                           fairness=fairness, fairness_form=form)
-            s, t, dist = project_points(ts, points, s, t, iterations=3)
+            s, t, dist = project_points(ts, points, s, t, iterations=3 if round_ == 0 else 2)
         stats = fit_stats(ts, dist, w, tol.share_within[1])
         history.append(stats)
         log.info("T-spline fit (%s) round %d: %s", mode, round_, stats.to_dict())
