@@ -57,7 +57,14 @@ def test_coverage_check_refuses_a_short_tessellation(sphere):
     # a chordal tessellation is always short of the exact area; demanding a
     # surplus makes the check fire, as a partial cover would
     with pytest.raises(KernelError, match="tessellation covers"):
-        tessellate(sphere, TessellationSettings(deflection_mm=0.05, coverage_tolerance=-1e-3))
+        tessellate(sphere, TessellationSettings(deflection_mm=0.05, coverage_tolerance=-1e-3, small_face_factor=0.0))
+
+
+def test_small_curved_faces_get_their_chordal_allowance():
+    settings = TessellationSettings(deflection_mm=0.05, coverage_tolerance=0.005, small_face_factor=2.0)
+    allowed = settings.allowed_shortfall(np.array([1.0, 0.25, 10000.0]))
+    assert allowed[0] == pytest.approx(0.1) and allowed[1] == pytest.approx(0.2)
+    assert allowed[2] == pytest.approx(0.005)  # large faces: the plain tolerance, partial covers refused
 
 
 def test_exact_projection_matches_analytic_sphere(sphere_fine):

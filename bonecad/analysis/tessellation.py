@@ -39,7 +39,9 @@ class TessellationSettings:
     coverage_tolerance : relative area shortfall accepted per face. A chordal
         tessellation is short by about deflection/radius (1e-3 for 0.02 mm on a
         20 mm radius); 0.5 % leaves margin for that and still catches the
-        known partial-coverage failure (20 % missing).
+        known partial-coverage failure (20 % missing). A face only a few
+        millimetres across is curved on its own scale, so it may fall short by
+        up to ``small_face_factor`` x deflection / sqrt(area) (see :meth:`allowed_shortfall`).
     area_rel_eps : relative error asked of BRepGProp's adaptive integration
         (default settings were 1 % off on large B-spline faces).
     max_edge_mm : longest triangle edge (per parameter direction on grid faces;
@@ -52,6 +54,15 @@ class TessellationSettings:
     coverage_tolerance: float = field(default_factory=_setting("coverage_tolerance"))
     area_rel_eps: float = field(default_factory=_setting("area_rel_eps"))
     max_edge_mm: float = field(default_factory=_setting("tessellation_max_edge_mm"))
+    small_face_factor: float = field(default_factory=_setting("small_face_shortfall_factor"))
+
+    def allowed_shortfall(self, exact_area_mm2: np.ndarray) -> np.ndarray:
+        """Relative area shortfall accepted for faces of these exact areas: the coverage
+        tolerance, or the chordal shortfall of a face curved on its own size (a 1 mm^2
+        cap face next to an apex), whichever is larger. A 20 % partial cover is still
+        refused on every face above 0.25 mm^2 at 0.05 mm deflection."""
+        size = np.sqrt(np.maximum(np.asarray(exact_area_mm2, dtype=np.float64), 1e-300))
+        return np.maximum(self.coverage_tolerance, self.small_face_factor * self.deflection_mm / size)
 
 
 @dataclass(frozen=True)
@@ -414,7 +425,7 @@ def _refined_grid(sset: SurfaceSet, grid_faces: list[int], reversed_faces: np.nd
         mesh = np.bincount(tf, weights=0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1),
                            minlength=count)[todo]
         exact = area[todo]
-        short = (exact > 0) & ((exact - mesh) / np.where(exact > 0, exact, 1.0) > settings.coverage_tolerance)
+        short = (exact > 0) & ((exact - mesh) / np.where(exact > 0, exact, 1.0) > settings.allowed_shortfall(exact))
         if not short.any() or attempt == 3:
             break
         todo = todo[short]
@@ -539,7 +550,9 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
     t = vertices[triangles]
     tri_area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
     area_mesh = np.bincount(tri_face_all, weights=tri_area, minlength=count)
-    short = (area_exact > 0) & ((area_exact - area_mesh) / np.where(area_exact > 0, area_exact, 1.0) > settings.coverage_tolerance)
+    short = (area_exact > 0) & (
+        (area_exact - area_mesh) / np.where(area_exact > 0, area_exact, 1.0) > settings.allowed_shortfall(area_exact)
+    )
     if short.any():
         index = int(np.flatnonzero(short)[0])
         raise KernelError(
@@ -593,7 +606,7 @@ def brepmesh_face(face, index: int, surface, native: bool, is_reversed: bool, se
     t = nodes[tri]
     mesh_area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
     exact = exact_face_area(face, settings.area_rel_eps)
-    if exact > 0 and (exact - mesh_area) / exact > settings.coverage_tolerance:
+    if exact > 0 and (exact - mesh_area) / exact > settings.allowed_shortfall(exact):
         raise KernelError(
             f"face {index}: tessellation covers {mesh_area:.4g} mm^2 of {exact:.4g} mm^2 "
             f"({100 * mesh_area / exact:.2f} %); refusing a tessellation-based distance"
