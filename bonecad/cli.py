@@ -101,6 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", choices=["nurbs", "tspline", "both"], default="both", help="which models to build")
     p.add_argument("--apex-fill", choices=["ring", "patch"], default=None,
                    help="NURBS apex holes: a ring of lines lofted flat, or a fill-hole patch (default from config)")
+    p.add_argument("--compare-tensor-product", action="store_true", default=None,
+                   help="also fit a tensor-product B-spline to the T-spline's tolerance and report its control points")
 
     p = sub.add_parser("segment", help="CT volume -> tibia surface mesh",
                        description="Read a CT volume (DICOM folder, .nii/.nii.gz, .nrrd, .mha), segment the "
@@ -172,7 +174,9 @@ def _run(args: argparse.Namespace) -> None:
         until = {"frame": "frame", "curves": "curves", "reconstruct": "models"}[args.command]
         models = ("nurbs", "tspline") if getattr(args, "model", "both") == "both" else (args.model,)
         result = pipeline.reconstruct(args.input, args.out, until=until, models=models,
-                                      apex_fill=getattr(args, "apex_fill", None), units=args.units, config=config,
+                                      apex_fill=getattr(args, "apex_fill", None),
+                                      compare_tensor_product=getattr(args, "compare_tensor_product", None),
+                                      units=args.units, config=config,
                                       distal_boundary_mm=args.distal_boundary,
                                       proximal_boundary_mm=args.proximal_boundary)
         _print_result(result)

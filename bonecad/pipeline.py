@@ -192,6 +192,7 @@ def reconstruct_bone(
     until: str = "models",
     models: tuple[str, ...] = MODELS,
     apex_fill: str | None = None,
+    compare_tensor_product: bool | None = None,
     config: dict | None = None,
     distal_boundary_mm: float | None = None,
     proximal_boundary_mm: float | None = None,
@@ -240,14 +241,27 @@ def reconstruct_bone(
                          summary["curves"], summary["worst_max_deviation_mm"], summary["tolerance_mm"],
                          summary["within_tolerance"])
         if until == "models":
-            _build_models(result, stage_dir, models, apex_fill, config, timings)
+            _build_models(result, stage_dir, models, apex_fill, compare_tensor_product, config, timings)
         write_json({"input": mesh_summary(bone), **frame.as_dict(), "timings_s": dict(timings)}, stage_dir / "frame.json")
         result.files = sorted(p.name for p in stage_dir.iterdir())
     result.timings_s = dict(timings)
     return result
 
 
-def _build_models(result: Reconstruction, stage_dir: Path, models, apex_fill, config, timings: Timings) -> None:
+def _face_count(shape) -> int:
+    from OCP.TopAbs import TopAbs_FACE
+    from OCP.TopExp import TopExp_Explorer
+
+    explorer, count = TopExp_Explorer(shape, TopAbs_FACE), 0
+    while explorer.More():
+        count += 1
+        explorer.Next()
+    return count
+
+
+def _build_models(
+    result: Reconstruction, stage_dir: Path, models, apex_fill, compare_tensor_product, config, timings: Timings
+) -> None:
     """Each requested model, its exports and analysis, then report.json/report.html."""
     from .analysis.model import analyse_model
     from .analysis.report import write_report
@@ -266,12 +280,14 @@ def _build_models(result: Reconstruction, stage_dir: Path, models, apex_fill, co
         from .tspline_model.model import build_tspline_model, write_tspline
 
         with timings.stage("T-spline model"):
-            tspline = build_tspline_model(bone, frame, contours, config=config)
+            tspline = build_tspline_model(bone, frame, contours, config=config,
+                                          compare_tensor_product=compare_tensor_product)
             write_tspline(tspline, stage_dir)
         result.models["tspline"] = tspline
         with timings.stage("T-spline analysis"):
             result.reports["tspline"] = analyse_model(
-                "tspline", tspline.shape, bone, frame, stage_dir, info=tspline.summary()
+                "tspline", tspline.shape, bone, frame, stage_dir,
+                info={"faces": _face_count(tspline.shape), **tspline.summary()},
             )
     with timings.stage("report"):
         write_report(
@@ -290,6 +306,7 @@ def reconstruct(
     until: str = "models",
     models: tuple[str, ...] = MODELS,
     apex_fill: str | None = None,
+    compare_tensor_product: bool | None = None,
     units: Units = "auto",
     config: dict | None = None,
     distal_boundary_mm: float | None = None,
@@ -303,7 +320,8 @@ def reconstruct(
     with timings.stage("input"):
         bone = load_input(source, units=units, config=config)
     return reconstruct_bone(
-        bone, out_dir, until=until, models=models, apex_fill=apex_fill, config=config,
+        bone, out_dir, until=until, models=models, apex_fill=apex_fill,
+        compare_tensor_product=compare_tensor_product, config=config,
         distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm, timings=timings,
     )
 
