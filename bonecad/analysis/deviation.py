@@ -199,9 +199,16 @@ def signed_distance_to_shape(
         dist[sel[ok]] = exact[ok]
         foot[sel[ok]] = proj.foot[ok]
         refined[sel[ok]] = True
+    if len(sel) and tess.face_count > 1:
+        # a foot point stopped at its face's boundary: the nearest point may lie on the
+        # face across it; start again there, from that face's tessellation node nearest
+        # to the stopped foot point (same acceptance test)
+        stopped = ~refined[sel] & np.isfinite(proj.foot).all(axis=1)
+        _retry_across(tess, points, sel[stopped], proj.foot[stopped], face, residual_tol_mm, dist, foot, refined)
     rest = np.flatnonzero(~refined)
     if len(rest):
-        near = locator.query(points[rest])
+        # the tessellation distance; the first search was certified already when certify is set
+        near = _subset(near, rest) if certify else locator.query(points[rest])
         tri = tess.triangles[near.triangle]
         normal = np.einsum("nk,nkj->nj", near.barycentric, tess.normals[tri])
         dist[rest] = _signed(points[rest], near.points, normal)
@@ -246,6 +253,42 @@ def sample_shape(tess: Tessellation, count: int, *, seed: int = 0) -> tuple[np.n
         on_surface[sel[ok]] = True
     weights *= tess.face_area_exact_mm2.sum() / weights.sum()
     return points, weights, on_surface
+
+
+def _subset(near, rows: np.ndarray):
+    return type(near)(near.points[rows], near.triangle[rows], near.barycentric[rows], near.distance[rows])
+
+
+#: tessellation nodes searched about a stopped foot point for one on another face
+_ACROSS_NODES = 16
+
+
+def _retry_across(tess: Tessellation, points, rows, stopped_foot, face, residual_tol_mm, dist, foot, refined):
+    """Project ``points[rows]`` onto the faces next to their stopped foot points; update in place."""
+    from scipy.spatial import cKDTree
+
+    if len(rows) == 0:
+        return
+    sset = tess.surface_set
+    k = min(_ACROSS_NODES, len(tess.vertices))
+    _, nodes = cKDTree(tess.vertices).query(stopped_foot, k=k)
+    nodes = nodes.reshape(len(rows), k)
+    other = tess.node_face[nodes]
+    usable = (other != face[rows][:, None]) & (sset.group[other] >= 0)
+    has = usable.any(axis=1)
+    rows, nodes, other, usable = rows[has], nodes[has], other[has], usable[has]
+    if len(rows) == 0:
+        return
+    pick = nodes[np.arange(len(rows)), np.argmax(usable, axis=1)]
+    target = tess.node_face[pick]
+    proj = project_faces(sset, target, points[rows], tess.uv[pick])
+    n = np.where(tess.reversed_faces[target][:, None], -proj.normal, proj.normal)
+    exact = _signed(points[rows], proj.foot, n)
+    ok = (proj.residual_mm <= residual_tol_mm) & np.isfinite(exact)
+    dist[rows[ok]] = exact[ok]
+    foot[rows[ok]] = proj.foot[ok]
+    face[rows[ok]] = target[ok]
+    refined[rows[ok]] = True
 
 
 def _labels(points: np.ndarray, regions: RegionSpec) -> np.ndarray:
