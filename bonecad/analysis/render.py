@@ -261,21 +261,18 @@ def zebra_image(raster: Raster, *, stripes: int = 40, stripe_axis: str = "horizo
 
 
 def _figure(ncols: int, aspect: float):
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    """A matplotlib Figure outside pyplot: no global backend switch (Jupyter's inline plots keep working)."""
+    from matplotlib.figure import Figure
 
     height = 7.0
     width = max(4.0, ncols * height * aspect + 1.6)
-    return plt, plt.figure(figsize=(width, height), dpi=110)
+    return Figure(figsize=(width, height), dpi=110)
 
 
-def _save(fig, plt, path: str | Path) -> Path:
+def _save(fig, path: str | Path) -> Path:
     path = Path(path)
     with staged_file(path) as tmp:
         fig.savefig(tmp, format="png")
-    plt.close(fig)
     return path
 
 
@@ -302,11 +299,11 @@ def deviation_map_png(
     rasters = render_mesh_values(vertices, triangles, d, frame, VIEWS, height_px=height_px)
     r0 = rasters[0]
     aspect = (r0.extent_mm[1] - r0.extent_mm[0]) / (r0.extent_mm[3] - r0.extent_mm[2])
-    plt, fig = _figure(2, aspect)
-    from matplotlib import cm, colors
+    fig = _figure(2, aspect)
+    from matplotlib import cm, colormaps, colors
 
     norm = colors.Normalize(vmin=-limit_mm, vmax=limit_mm)
-    cmap = plt.get_cmap("RdBu_r")
+    cmap = colormaps["RdBu_r"]
     axes = fig.subplots(1, 2)
     for ax, raster, name in zip(axes, rasters, VIEWS):
         rgb = cmap(norm(raster.values[..., 0]))[..., :3]
@@ -320,7 +317,7 @@ def deviation_map_png(
     bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), extend="both", shrink=0.8)
     bar.set_label("signed deviation, mm (+ = mesh outside CAD)")
     fig.suptitle(title)
-    return _save(fig, plt, path)
+    return _save(fig, path)
 
 
 def histogram_png(path: str | Path, histograms: dict, *, title: str = "Share of surface per deviation band") -> Path:
@@ -331,7 +328,7 @@ def histogram_png(path: str | Path, histograms: dict, *, title: str = "Share of 
     """
     if not histograms:
         raise InputError("no histograms to plot")
-    plt, fig = _figure(1, 1.4)
+    fig = _figure(1, 1.4)
     ax = fig.subplots()
     first = True
     for label, h in histograms.items():
@@ -354,7 +351,7 @@ def histogram_png(path: str | Path, histograms: dict, *, title: str = "Share of 
     ax.grid(alpha=0.3)
     ax.set_title(title)
     ax.legend()
-    return _save(fig, plt, path)
+    return _save(fig, path)
 
 
 def zebra_png(
@@ -370,11 +367,11 @@ def zebra_png(
     rasters = render_tessellation_normals(tess, frame, VIEWS, height_px=height_px)
     r0 = rasters[0]
     aspect = (r0.extent_mm[1] - r0.extent_mm[0]) / (r0.extent_mm[3] - r0.extent_mm[2])
-    plt, fig = _figure(2, aspect)
+    fig = _figure(2, aspect)
     axes = fig.subplots(1, 2)
     for ax, raster, name in zip(axes, rasters, VIEWS):
         ax.imshow(zebra_image(raster, stripes=stripes), extent=raster.extent_mm, interpolation="nearest")
         ax.set_title(name)
         ax.set_xlabel("mm")
     fig.suptitle(title)
-    return _save(fig, plt, path)
+    return _save(fig, path)

@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.lines import Line2D
 
 from ..analysis.render import VIEWS, _figure, _save, render_mesh_values, screen_axes
 from .contours import ContourSet
@@ -16,7 +17,7 @@ def curves_png(path: str | Path, vertices: np.ndarray, faces: np.ndarray, contou
     frame = np.eye(3)  # bone coordinates: x lateral, y anterior, z proximal
     rasters = render_mesh_values(vertices, faces, np.zeros(len(vertices)), frame, VIEWS, height_px=700)
     left, right, bottom, top = rasters[0].extent_mm
-    plt, fig = _figure(2, (right - left) / (top - bottom))
+    fig = _figure(2, (right - left) / (top - bottom))
     axes = fig.subplots(1, 2)
     u = np.linspace(0.0, 1.0, 400)
     for ax, raster, view in zip(axes, rasters, VIEWS):
@@ -38,7 +39,7 @@ def curves_png(path: str | Path, vertices: np.ndarray, faces: np.ndarray, contou
         ax.set_title(f"{view} view")
         ax.set_xlabel("mm")
     axes[0].set_ylabel("mm above the plafond centre")
-    handles = [plt.Line2D([], [], color=c, label=r) for r, c in REGION_COLOURS.items()]
+    handles = [Line2D([], [], color=c, label=r) for r, c in REGION_COLOURS.items()]
     fig.legend(handles=handles, loc="lower center", ncol=3)
     fig.suptitle("Contour curves")
-    return _save(fig, plt, path)
+    return _save(fig, path)
