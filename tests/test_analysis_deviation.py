@@ -228,3 +228,25 @@ def test_statistics_and_histogram():
     np.testing.assert_array_equal(weighted_percentiles(np.abs(d), w, [10, 50, 50.1, 99.9]), [0.05, 3.0, 5.0, 5.0])
     with pytest.raises(InputError, match="whole number"):
         band_edges(0.3, 1.0)
+
+
+def test_foot_points_across_a_face_boundary_are_refined_on_the_neighbour():
+    """A C2 surface cut into two sewn faces measures like the uncut face: points whose
+    nearest triangle lies on one face and foot point on the other are projected again."""
+    from tests.test_analysis_continuity import two_patches
+
+    split, whole = two_patches(1)
+    settings = TessellationSettings(deflection_mm=0.5, max_edge_mm=8.0)
+    one = tessellate(whole, settings)
+    two = tessellate(split, settings)
+    rng = np.random.default_rng(4)
+    # points near the cut (u = 1 is x = 20 mm), 1 mm off the surface on either side
+    base = sample_surface(one.vertices, one.triangles, 20000, seed=4).points
+    base = base[np.abs(base[:, 0] - 20.0) < 3.0]
+    points = base + rng.uniform(-1.0, 1.0, (len(base), 1)) * np.array([0.0, 0.3, 1.0])
+    ref = signed_distance_to_shape(points, one)
+    got = signed_distance_to_shape(points, two)
+    inner = ref.refined  # foot points inside the uncut face
+    assert inner.mean() > 0.9
+    assert got.refined[inner].all()
+    np.testing.assert_allclose(got.distance_mm[inner], ref.distance_mm[inner], atol=1e-9)

@@ -121,7 +121,8 @@ def project(
     direction). Started near the foot point it converges to it at a rate of
     about |distance| x curvature per step; points stop iterating once their
     step moves the surface point less than ``tol_mm``. ``residual_mm`` tells
-    whether a point converged.
+    whether a point converged. A point clamped in two successive steps stops
+    there (its foot point lies beyond the face; one clamp may be an overshoot).
     """
     points = np.asarray(points, dtype=np.float64)
     face = np.zeros(len(points), dtype=np.int64)
@@ -382,6 +383,7 @@ def project_faces(
     clamped = np.zeros(len(points), dtype=bool)
     for lo in range(0, len(points), chunk):
         active = np.arange(lo, min(lo + chunk, len(points)))
+        was_clamped = np.zeros(len(active), dtype=bool)
         for _ in range(max_iterations):
             if len(active) == 0:
                 break
@@ -407,7 +409,10 @@ def project_faces(
             uv[active] = np.clip(nxt, lo_a, hi_a)
             clamped[active] = hit
             step = np.sqrt(du * du * a + 2 * du * dv * b + dv * dv * c)  # |du S_u + dv S_v|
-            active = active[(step > tol_mm) & ~hit]
+            # a step past a bound is clamped and tried once more (an overshoot near the
+            # edge); clamped twice running, the foot point lies beyond the face
+            keep = (step > tol_mm) & ~(hit & was_clamped)
+            active, was_clamped = active[keep], hit[keep]
     s = np.empty((len(points), 3))
     n = np.empty((len(points), 3))
     for lo in range(0, len(points), chunk):
