@@ -367,31 +367,45 @@ def _grid_tessellation(sset: SurfaceSet, faces: list[int], reversed_faces: np.nd
         u0, u1, v0, v1 = s.bounds
         breaks.append((_breaks(s.knots_u, u0, u1), _breaks(s.knots_v, v0, v1)))
     counts_u, counts_v = _grid_counts(sset, faces, breaks, settings, factor)
-    uvs, tris, node_face, quads, quad_face = [], [], [], [], []
+    grids = [(_subdivide(bu, cu), _subdivide(bv, cv)) for (bu, bv), cu, cv in zip(breaks, counts_u, counts_v)]
+    # faces with the same grid size share one index pattern: build them together
+    by_size: dict[tuple[int, int], list[int]] = {}
+    for i, (gu, gv) in enumerate(grids):
+        by_size.setdefault((len(gu), len(gv)), []).append(i)
+    faces_arr = np.asarray(faces, dtype=np.int64)
+    uvs, tris, node_face, tri_face, quads, quad_face = [], [], [], [], [], []
     offset = 0
-    for f, (bu, bv), cu, cv in zip(faces, breaks, counts_u, counts_v):
-        gu, gv = _subdivide(bu, cu), _subdivide(bv, cv)
-        nu, nv = len(gu), len(gv)
-        uu, vv = np.meshgrid(gu, gv, indexing="ij")
+    for (nu, nv), members in by_size.items():
+        count = len(members)
+        fids = faces_arr[members]
+        gu = np.array([grids[i][0] for i in members])  # (F, nu)
+        gv = np.array([grids[i][1] for i in members])  # (F, nv)
+        uu = np.broadcast_to(gu[:, :, None], (count, nu, nv))
+        vv = np.broadcast_to(gv[:, None, :], (count, nu, nv))
         uvs.append(np.column_stack([uu.ravel(), vv.ravel()]))
-        idx = np.arange(nu * nv).reshape(nu, nv) + offset
+        idx = np.arange(nu * nv).reshape(nu, nv)
         a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-        tri = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
-        if reversed_faces[f]:
-            tri = tri[:, [0, 2, 1]]
-        tris.append(tri)
-        node_face.append(np.full(nu * nv, f))
-        q0u, q0v = np.meshgrid(gu[:-1], gv[:-1], indexing="ij")
-        q1u, q1v = np.meshgrid(gu[1:], gv[1:], indexing="ij")
-        quads.append(np.column_stack([q0u.ravel(), q1u.ravel(), q0v.ravel(), q1v.ravel()]))
-        quad_face.append(np.full(len(a), f))
-        offset += nu * nv
+        pattern = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+        tri = pattern[None] + (offset + nu * nv * np.arange(count))[:, None, None]  # (F, T, 3)
+        flip = reversed_faces[fids]
+        tri[flip] = tri[flip][:, :, [0, 2, 1]]
+        tris.append(tri.reshape(-1, 3))
+        node_face.append(np.repeat(fids, nu * nv))
+        tri_face.append(np.repeat(fids, len(pattern)))
+        cells = (nu - 1) * (nv - 1)
+        q0u = np.broadcast_to(gu[:, :-1, None], (count, nu - 1, nv - 1)).ravel()
+        q1u = np.broadcast_to(gu[:, 1:, None], (count, nu - 1, nv - 1)).ravel()
+        q0v = np.broadcast_to(gv[:, None, :-1], (count, nu - 1, nv - 1)).ravel()
+        q1v = np.broadcast_to(gv[:, None, 1:], (count, nu - 1, nv - 1)).ravel()
+        quads.append(np.column_stack([q0u, q1u, q0v, q1v]))
+        quad_face.append(np.repeat(fids, cells))
+        offset += count * nu * nv
     uv = np.concatenate(uvs)
     node_face = np.concatenate(node_face)
     triangles = np.concatenate(tris)
     quads = np.concatenate(quads)
     quad_face = np.concatenate(quad_face)
-    triangle_face = np.concatenate([np.full(len(t), f) for f, t in zip(faces, tris)])
+    triangle_face = np.concatenate(tri_face)
     # exact area: 2x2 Gauss-Legendre on every grid cell
     g = 0.5 / np.sqrt(3.0)
     mid_u, half_u = 0.5 * (quads[:, 0] + quads[:, 1]), quads[:, 1] - quads[:, 0]
