@@ -306,47 +306,51 @@ def _grid_counts(sset: SurfaceSet, faces: list[int], breaks: list[tuple[np.ndarr
     m = _SIZE_SAMPLES
     t = np.linspace(0.0, 1.0, m)
     c = np.linspace(0.0, 1.0, _SIZE_LINES)
-    out = []
-    for direction in (0, 1):
-        fids, us, vs, spans_per_face, span_ids = [], [], [], [], []
-        for f, (bu, bv) in zip(faces, breaks):
-            along, across = (bu, bv) if direction == 0 else (bv, bu)
-            lo, hi = along[:-1], along[1:]
-            par = lo[:, None] + (hi - lo)[:, None] * t  # (S, m)
-            cross = np.union1d(across[0] + (across[-1] - across[0]) * c, 0.5 * (across[:-1] + across[1:]))
-            cross = np.union1d(cross, across)
-            k = len(cross)
-            grid_a = np.broadcast_to(par[:, None, :], (len(lo), k, m))
-            grid_c = np.broadcast_to(cross[None, :, None], (len(lo), k, m))
+    factor = np.asarray(factor, dtype=np.float64)
+    faces_arr = np.asarray(faces, dtype=np.int64)
+    out: list[list] = [[None] * len(faces), [None] * len(faces)]
+    # faces with as many knot spans each way are sized together
+    by_spans: dict[tuple[int, int], list[int]] = {}
+    for i, (bu, bv) in enumerate(breaks):
+        by_spans.setdefault((len(bu), len(bv)), []).append(i)
+    for members in by_spans.values():
+        fids = faces_arr[members]
+        all_u = np.array([breaks[i][0] for i in members])
+        all_v = np.array([breaks[i][1] for i in members])
+        for direction in (0, 1):
+            along, across = (all_u, all_v) if direction == 0 else (all_v, all_u)
+            lo, hi = along[:, :-1], along[:, 1:]  # (F, S)
+            par = lo[..., None] + (hi - lo)[..., None] * t  # (F, S, m)
+            # cross lines: evenly spaced, mid-span and at the knots (a repeated line changes no maximum)
+            cross = np.concatenate(
+                [across[:, :1] + (across[:, -1:] - across[:, :1]) * c, 0.5 * (across[:, :-1] + across[:, 1:]), across],
+                axis=1,
+            )  # (F, K)
+            count, spans = lo.shape
+            shape = (count, spans, cross.shape[1], m)
+            grid_a = np.broadcast_to(par[:, :, None, :], shape)
+            grid_c = np.broadcast_to(cross[:, None, :, None], shape)
             uu, vv = (grid_a, grid_c) if direction == 0 else (grid_c, grid_a)
-            us.append(uu.ravel())
-            vs.append(vv.ravel())
-            fids.append(np.full(uu.size, f))
-            span_ids.append(np.repeat(np.arange(len(lo)) + sum(spans_per_face), k))
-            spans_per_face.append(len(lo))
-        pts = sset.evaluate(np.concatenate(fids), np.concatenate(us), np.concatenate(vs))[0]
-        pts = pts.reshape(-1, m, 3)  # one polyline of m samples per (span, cross line)
-        span_of = np.concatenate(span_ids)
-        spans = sum(spans_per_face)
-        d = np.diff(pts, axis=1)
-        size = np.linalg.norm(d, axis=2)
-        dn = d / np.maximum(size[:, :, None], 1e-300)
-        turn = np.arccos(np.clip(np.einsum("lmj,lmj->lm", dn[:, 1:], dn[:, :-1]), -1, 1))
-        length, second, turns = np.zeros(spans), np.zeros(spans), np.zeros(spans)
-        np.maximum.at(length, span_of, size.sum(axis=1))
-        np.maximum.at(second, span_of, np.linalg.norm(pts[:, 2:] - 2 * pts[:, 1:-1] + pts[:, :-2], axis=2).max(axis=1))
-        np.maximum.at(turns, span_of, turn.sum(axis=1) * (m - 1) / max(m - 2, 1))
-        turn = turns
-        n = np.maximum.reduce(
-            [
-                np.ones(len(length)),
-                np.ceil(length / settings.max_edge_mm),
-                np.ceil((m - 1) * np.sqrt(second / (8.0 * settings.deflection_mm))),
-                np.ceil(turn / settings.angular_deflection_rad),
-            ]
-        )
-        n = np.minimum(n * np.repeat(factor, spans_per_face), 1000).astype(np.int64)
-        out.append(np.split(n, np.cumsum(spans_per_face)[:-1]))
+            fid = np.broadcast_to(fids[:, None, None, None], shape)
+            pts = sset.evaluate(fid.ravel(), uu.ravel(), vv.ravel())[0].reshape(*shape, 3)
+            d = np.diff(pts, axis=3)
+            size = np.linalg.norm(d, axis=4)
+            dn = d / np.maximum(size[..., None], 1e-300)
+            turn = np.arccos(np.clip(np.einsum("fskmj,fskmj->fskm", dn[..., 1:, :], dn[..., :-1, :]), -1, 1))
+            length = size.sum(axis=3).max(axis=2)  # (F, S): longest sampled iso-line per span
+            second = np.linalg.norm(pts[..., 2:, :] - 2 * pts[..., 1:-1, :] + pts[..., :-2, :], axis=4).max(axis=(2, 3))
+            turns = (turn.sum(axis=3) * (m - 1) / max(m - 2, 1)).max(axis=2)
+            n = np.maximum.reduce(
+                [
+                    np.ones_like(length),
+                    np.ceil(length / settings.max_edge_mm),
+                    np.ceil((m - 1) * np.sqrt(second / (8.0 * settings.deflection_mm))),
+                    np.ceil(turns / settings.angular_deflection_rad),
+                ]
+            )
+            n = np.minimum(n * factor[members][:, None], 1000).astype(np.int64)
+            for row, i in enumerate(members):
+                out[direction][i] = n[row]
     return out
 
 
