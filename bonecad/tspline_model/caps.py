@@ -96,12 +96,11 @@ def build_cap(tube: TSpline, end: str, hole_points: np.ndarray, outward: np.ndar
         design = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
         height = float(np.linalg.lstsq(design, z, rcond=None)[0][0])
     apex = centre + height * n
-    radial = r0 - centre
-    radial -= np.outer(radial @ n, n)
     rad = np.linalg.norm(ring - centre, axis=1).mean()
+    spokes = _pole_spokes(r0 - centre, s_knots, mesh.s_period, n, e1, e2)
     # cap row 2 = R0 - mu D: the cap's derivative into the ring is 3 mu D, parallel to the tube's
     mu = rad / (3.0 * np.mean(np.linalg.norm(deriv, axis=1)))
-    rows = [np.repeat(apex[None], len(r0), axis=0), apex + radial / 3.0, r0 - mu * deriv, r0]
+    rows = [np.repeat(apex[None], len(r0), axis=0), apex + spokes / 3.0, r0 - mu * deriv, r0]
     if end == "proximal":
         rows = rows[::-1]  # r from the ring to the pole keeps the patch normal outward
     cp = np.stack(rows, axis=1)  # (m_s, 4, 3)
@@ -109,6 +108,31 @@ def build_cap(tube: TSpline, end: str, hole_points: np.ndarray, outward: np.ndar
     cap = _match_ring_elements(cap, tube, end)
     angles, spread = _measure(cap, tube, end)
     return ApexCap(end, cap, n, angles, spread)
+
+
+def _pole_spokes(radial: np.ndarray, s_knots: np.ndarray, period: float, n: np.ndarray, e1: np.ndarray,
+                 e2: np.ndarray) -> np.ndarray:
+    """Row-1 offsets from the pole: (m, 3) vectors in the cap plane that turn
+    monotonically round the pole, one full turn, in the ring's winding sense.
+
+    The pole's degenerate quads have the normal of ds(row 1) x (row 1 - apex)
+    there, so row 1 must be star-shaped about the pole with angles rising
+    with s: taking it from the ring row's own control points folds the cap
+    (normals flip at the pole, 180 degrees of spread) wherever that control
+    polygon turns back on itself, as a fit to a noisy or staircase mesh
+    makes it do on a 2.5 mm ring. The spokes keep the ring points' mean
+    radius and mean phase, and an angle proportional to s (s is the angle
+    about the end's axis, scaled to mm).
+    """
+    x, y = radial @ e1, radial @ e2
+    actual = np.arctan2(y, x)
+    # winding sense of the ring row (a mirrored frame or a reversed s turns it)
+    sense = 1.0 if np.sum(np.angle(np.exp(1j * np.diff(np.append(actual, actual[0]))))) >= 0 else -1.0
+    nominal = sense * 2.0 * np.pi * (s_knots - s_knots[0]) / period
+    phase = np.angle(np.mean(np.exp(1j * (actual - nominal))))
+    phi = nominal + phase
+    r = np.mean(np.hypot(x, y))
+    return r * (np.cos(phi)[:, None] * e1[None, :] + np.sin(phi)[:, None] * e2[None, :])
 
 
 def _match_ring_elements(cap: TSpline, tube: TSpline, end: str) -> TSpline:
