@@ -94,11 +94,15 @@ def splat(
     col = np.clip(((s[:, 0] - left) / pixel_mm).astype(np.int64), 0, width - 1)
     row = np.clip(((top - s[:, 1]) / pixel_mm).astype(np.int64), 0, height - 1)
     pix = row * width + col
-    # one sort key: pixel index, then nearest first (depth scaled into [0, 0.5))
+    # z-buffer: the nearest depth per pixel, then one sample reaching it per pixel
+    # (the lowest index among exact ties); no sort of all samples
     z = s[:, 2]
-    zn = (z.max() - z) / max(float(np.ptp(z)), 1e-300) * 0.5
-    order = np.argsort(pix + zn, kind="stable")
-    first = order[np.r_[True, pix[order][1:] != pix[order][:-1]]]
+    front = np.full(height * width, -np.inf)
+    np.maximum.at(front, pix, z)
+    reach = np.flatnonzero(z == front[pix])
+    owner = np.full(height * width, len(z))
+    np.minimum.at(owner, pix[reach], reach)
+    first = owner[owner < len(z)]
     mask = np.zeros(height * width, dtype=bool)
     mask[pix[first]] = True
     depth = np.full(height * width, -np.inf)
