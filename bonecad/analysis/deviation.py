@@ -364,7 +364,8 @@ def shape_deviation(
 
     t0 = time.perf_counter()
     samples = sample_surface(vertices, faces, count, seed=seed)
-    sd = signed_distance_to_shape(samples.points, tess)
+    shape_locator = TriangleLocator(tess.vertices, tess.triangles)  # shared with the vertex distances
+    sd = signed_distance_to_shape(samples.points, tess, locator=shape_locator)
     forward = summarise(
         samples.points, sd.distance_mm, samples.weights, _labels(samples.points, regions), sd.refined
     )
@@ -379,7 +380,7 @@ def shape_deviation(
     backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), on_surface)
     timings["cad_to_mesh"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    vertex_dev = signed_distance_to_shape(vertices, tess).distance_mm
+    vertex_dev = signed_distance_to_shape(vertices, tess, locator=shape_locator).distance_mm
     timings["vertices"] = time.perf_counter() - t0
     return DeviationResult(
         mesh_to_cad=forward,
