@@ -115,3 +115,23 @@ def test_budget_stops_refinement_and_says_so():
     assert not res.converged
     assert "budget (150)" in res.stopped
     assert res.tspline.n_control <= 150
+
+
+def test_staircase_is_recognised_and_stops_refinement_at_its_noise():
+    from bonecad.tspline_model.fit import local_noise_mm, voxel_step_mm
+
+    rng = np.random.default_rng(4)
+    pts, s, t = ellipsoid_band(20000, rng)
+    assert voxel_step_mm(pts) == 0.0  # smooth samples: no lattice
+    # a 1 mm voxel mask's surface: vertices on the half-voxel lattice
+    stair = np.round(pts / 0.5) * 0.5
+    assert voxel_step_mm(stair) == pytest.approx(1.0)
+    noise = local_noise_mm(stair, voxel_mm=voxel_step_mm(stair))
+    assert noise.min() >= 1.0 / np.sqrt(12) - 1e-12
+    tol = FitTolerances(share_within=(0.99, 0.1), max_deviation_mm=1.0, rms_mm=0.05, max_control_points=5000,
+                        min_element_mm=0.05, max_rounds=8, mark_fraction=0.6)
+    free = fit_adaptive(cylinder(8, 4), stair, s=s, t=t, tolerances=tol, fairness=1e-6)
+    aware = fit_adaptive(cylinder(8, 4), stair, s=s, t=t, tolerances=tol, fairness=1e-6, noise=noise)
+    assert not aware.converged and "up to the data's noise" in aware.stopped, aware.stopped
+    assert aware.tspline.n_control < free.tspline.n_control / 2, (aware.tspline.n_control, free.tspline.n_control)
+    assert aware.stats.max_mm <= 1.0

@@ -200,7 +200,7 @@ def initial_parameters(
     return project_points(ts, points, ss.ravel()[idx], tt.ravel()[idx], iterations=iterations)
 
 
-def local_noise_mm(points: np.ndarray, *, neighbours: int = 24) -> np.ndarray:
+def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float = 0.0) -> np.ndarray:
     """(n,) mm: how far the data scatter about a smooth surface near each point.
 
     For every point, a quadric height field z = a + bx + cy + dx^2 + exy + fy^2
@@ -210,6 +210,12 @@ def local_noise_mm(points: np.ndarray, *, neighbours: int = 24) -> np.ndarray:
     staircase of MRI slices it is the steps' scatter, and on a crease sharper
     than the sampling it is the crease's mismatch: in both, no surface that
     is smooth at the mesh's resolution comes closer.
+
+    voxel_mm : the voxel size of a staircase mesh (``voxel_step_mm``; 0: none).
+    A quadric through a vertex's nearest neighbours follows one or two voxel
+    steps and underrates the staircase, so the noise is then at least
+    voxel_mm / sqrt(12), the RMS distance of a staircase of that step from
+    the smooth surface through it (a uniform error over one step).
     """
     points = np.asarray(points, dtype=np.float64)
     k = min(neighbours, len(points))
@@ -228,7 +234,28 @@ def local_noise_mm(points: np.ndarray, *, neighbours: int = 24) -> np.ndarray:
         coef = np.linalg.solve(ata, np.einsum("mki,mk->mi", design, z)[..., None])[..., 0]
         res = z - np.einsum("mki,mi->mk", design, coef)
         out[lo : lo + len(nb)] = np.sqrt(np.mean(res**2, axis=1))
-    return out
+    return np.maximum(out, voxel_mm / np.sqrt(12.0))
+
+
+def voxel_step_mm(points: np.ndarray, *, max_distinct: float = 0.05) -> float:
+    """The voxel size of a staircase mesh (0.0 when the mesh is not one).
+
+    A mesh made from a voxel mask without sub-voxel interpolation has its
+    vertices on a lattice: along at least two axes (of the scanner frame,
+    where the voxels are) the coordinates take few distinct values (at most
+    ``max_distinct`` of the vertex count). Its vertices then sit at voxel
+    corners or edge midpoints, so the voxel is twice the commonest spacing
+    of the distinct values; the largest over the lattice axes is returned.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    steps = []
+    for ax in range(points.shape[1]):
+        u = np.unique(np.round(points[:, ax], 6))
+        if len(u) < 3 or len(u) > max_distinct * len(points):
+            continue
+        d = np.diff(u)
+        steps.append(2.0 * float(np.median(d[d > 1e-6])))
+    return max(steps) if len(steps) >= 2 else 0.0
 
 
 # --------------------------------------------------------------- least squares
@@ -376,6 +403,15 @@ def _marked_elements(ts: TSpline, s, t, distance, weights, tol: FitTolerances, f
     return np.flatnonzero(marked & eligible & ((wbad > 0) | (worst > tol.max_deviation_mm)))
 
 
+def _meets_up_to_noise(distance: np.ndarray, weights: np.ndarray, stalled: np.ndarray, tol: FitTolerances) -> bool:
+    """The tolerances hold when points within the data's noise count as fitted:
+    the share target on (within | stalled), and no point beyond the noise and
+    beyond the maximum deviation. (The RMS bar is not asked: on a staircase
+    the noise alone sets it.)"""
+    fitted = (distance <= tol.share_within[1]) | stalled
+    return _share(weights, fitted) >= tol.share_within[0] and not np.any((distance > tol.max_deviation_mm) & ~stalled)
+
+
 def _share(weights: np.ndarray, mask: np.ndarray) -> float:
     return float(weights[mask].sum() / weights.sum())
 
@@ -451,10 +487,15 @@ def fit_adaptive(
         log.info("T-spline fit (%s) round %d: %s", mode, round_, stats.to_dict())
         if stats.meets(tol):
             return FitResult(ts, s, t, dist, stats, history, True, "tolerances met")
+        stalled = None if noise_mm is None else dist <= noise_mm
+        if stalled is not None and _meets_up_to_noise(dist, w, stalled, tol):
+            stopped = (f"tolerances met up to the data's noise: {_share(w, stalled & (dist > tol.share_within[1])):.2%} "
+                       f"of the surface lies beyond {tol.share_within[1]} mm but within {tol.noise_factor} x the "
+                       f"local noise; no point beyond {tol.max_deviation_mm} mm asks for more")
+            break
         if round_ == tol.max_rounds:
             stopped = f"round limit ({tol.max_rounds}) reached"
             break
-        stalled = None if noise_mm is None else dist <= noise_mm
         marked = _marked_elements(ts, s, t, dist, w, tol, frozen, stalled)
         if marked.size == 0:
             stopped = f"no element larger than {2 * tol.min_element_mm} mm misses the tolerance"

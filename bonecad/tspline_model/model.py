@@ -32,7 +32,7 @@ from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.tspline import TSpline, to_dict
 
 from .caps import ApexCap, build_cap
-from .fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm
+from .fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm, voxel_step_mm
 from .skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger("bonecad")
@@ -226,7 +226,8 @@ def build_tspline_model(
 
     clock = time.perf_counter()
     s0, t0, _ = initial_parameters(ts0, pts)
-    noise = local_noise_mm(pts, neighbours=int(st["noise_neighbours"]))
+    # a staircase (voxel-mask mesh) shows its lattice in scanner coordinates
+    noise = local_noise_mm(pts, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
                        constraints=rings, noise=noise)
     timings["fit"] = time.perf_counter() - clock
