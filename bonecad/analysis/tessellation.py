@@ -681,13 +681,20 @@ def chord_errors(sset: SurfaceSet, vertices, uv, triangles, triangle_face, face_
         converged = proj.residual_mm < 1e-6 + 1e-3 * d
         return np.where(converged, d, bound[sel])  # not converged: keep the upper bound
 
-    # round 1: each face's sample of largest bound; round 2: every sample that could beat it
+    # first each face's sample of largest bound
     order = np.lexsort((-bound, face))
     first = order[np.r_[True, face[order][1:] != face[order][:-1]]]
     np.maximum.at(chord, face[first], exact(first))
+    # then the rest that could beat it, largest bound first, in growing batches: each
+    # batch raises the maxima and drops the samples whose bound no longer exceeds them
     todo = np.flatnonzero(bound > chord[face])
-    if len(todo):
-        np.maximum.at(chord, face[todo], exact(todo))
+    todo = todo[np.argsort(-bound[todo], kind="stable")]
+    batch = 4096
+    while len(todo):
+        head, todo = todo[:batch], todo[batch:]
+        np.maximum.at(chord, face[head], exact(head))
+        todo = todo[bound[todo] > chord[face[todo]]]
+        batch *= 4
     return chord
 
 
