@@ -20,10 +20,15 @@ Method and error bound
    (1e-9 mm) for that foot point, and the foot point is the global nearest
    whenever the tessellation's chord error is far below the surface's radius of
    curvature (the start lies in the foot point's basin).
-3. Points not accepted (foot point on a face boundary, failed conversion) keep
-   the tessellation distance, whose error is at most the measured chord error
-   of the face (``Tessellation.chord_error_mm``); the result reports the share
-   refined and this bound (``DeviationResult.unrefined_bound_mm``).
+   A foot point stopped at its face's boundary is projected again on the face
+   across it, from that face's tessellation node nearest to the stopped point
+   (same acceptance test). CAD -> mesh samples are drawn on the exact surface
+   directly (:func:`sample_shape`) and their distances to the mesh are exact.
+3. Points still not accepted (foot point on a crease or outer boundary, failed
+   conversion) keep the tessellation distance, whose error is at most the
+   measured chord error of the face (``Tessellation.chord_error_mm``); the
+   result reports the share refined and this bound
+   (``DeviationResult.unrefined_bound_mm``).
 """
 from __future__ import annotations
 
