@@ -14,7 +14,7 @@ Bezier patches, about 3.5k Geom_BezierSurface faces sewn like a T-spline model
 (target < 7 s): best of 3 wall-clock and process time, and the load average
 (the 2 cores are shared: a loaded machine stretches wall time).
 
-Run: /work/venv/bin/python benchmarks/bench_analysis.py
+Run: .venv/bin/python benchmarks/bench_analysis.py
 """
 from __future__ import annotations
 
