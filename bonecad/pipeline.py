@@ -24,8 +24,8 @@ from .config import load_config
 from .curves.contours import ContourSet, bone_coordinates, contour_curves
 from .io.cad import compound, frame_shapes, write_iges, write_step
 from .io.output import staged_output
-from .mesh.bone_mesh import BoneMesh
 from .errors import InputError
+from .mesh.bone_mesh import BoneMesh
 from .mesh.intake import Units, load_bone
 
 log = logging.getLogger("bonecad")
@@ -77,29 +77,30 @@ def is_volume(path: str | Path) -> bool:
     return path.is_dir() or path.name.lower().endswith(VOLUME_SUFFIXES)
 
 
-def load_input(path: str | Path, *, units: Units = "auto", config: dict | None = None) -> BoneMesh:
-    """The tibia mesh of an input: read a mesh file, or segment a CT volume (DICOM folder, NIfTI, NRRD, MHA)."""
-    if is_volume(path):
-        from .imaging import segment_bone
-        from .io.volume import read_volume
+def segment_ct(path: str | Path) -> BoneMesh:
+    """The tibia's surface from a CT volume (DICOM folder, NIfTI, NRRD, MHA), world mm (LPS)."""
+    from .imaging import segment_bone
+    from .io.volume import read_volume
 
-        log.info("reading CT volume %s", path)
-        volume = read_volume(path)
-        log.info("segmenting bone (%d x %d x %d voxels)", *volume.hu.shape[::-1])
-        return segment_bone(volume)
-    return load_bone(path, units=units, config=config)
+    log.info("reading CT volume %s", path)
+    volume = read_volume(path)
+    log.info("segmenting bone (%d x %d x %d voxels)", *volume.hu.shape[::-1])
+    return segment_bone(volume)
+
+
+def load_input(path: str | Path, *, units: Units = "auto", config: dict | None = None) -> BoneMesh:
+    """The tibia mesh of an input: read a mesh file, or segment a CT volume."""
+    return segment_ct(path) if is_volume(path) else load_bone(path, units=units, config=config)
 
 
 def run_segment(path: str | Path, out_mesh: str | Path) -> BoneMesh:
     """``bonecad segment``: the tibia's surface from a CT volume, written as a mesh file (STL, PLY, OBJ, OFF)."""
-    from .imaging import segment_bone
     from .io.output import staged_file
-    from .io.volume import read_volume
 
     out_mesh = Path(out_mesh)
     if out_mesh.suffix.lower() not in (".stl", ".ply", ".obj", ".off"):
         raise InputError(f"unsupported mesh format '{out_mesh.suffix}' (use .stl, .ply, .obj or .off)", out_mesh)
-    bone = segment_bone(read_volume(path))
+    bone = segment_ct(path)
     with staged_file(out_mesh) as tmp:
         bone.to_trimesh().export(tmp, file_type=out_mesh.suffix[1:].lower())
     return bone
