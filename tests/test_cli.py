@@ -78,3 +78,20 @@ def test_inspect_real_meshes(path, capsys):
     assert main(["inspect", str(path), "-q"]) == 0
     text = capsys.readouterr().out
     assert "tibia" in text and "side" in text
+
+
+def test_segment_command(phantom, tmp_path, capsys):
+    from bonecad.imaging import mesh_to_ct
+    from bonecad.io.volume import write_nifti
+
+    ct = write_nifti(mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=1.5, noise_hu=30.0), tmp_path / "ct.nii.gz")
+    out = tmp_path / "tibia.stl"
+    assert main(["segment", str(ct), "--out", str(out), "-q"]) == 0
+    segmented = trimesh.load(out)
+    assert segmented.is_watertight
+    assert abs(segmented.volume - phantom.to_trimesh().volume) / phantom.to_trimesh().volume < 0.05
+    # A mesh is not a CT volume: exit 2, nothing written.
+    mesh = tmp_path / "phantom.stl"
+    phantom.to_trimesh().export(mesh)
+    assert main(["segment", str(mesh), "--out", str(tmp_path / "again.stl"), "-q"]) == 2
+    assert not (tmp_path / "again.stl").exists()
