@@ -121,3 +121,40 @@ def load_tube(path):
     from bonecad.tspline import from_dict
 
     return from_dict(json.loads(path.read_text())["tube"])
+
+
+def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model, rng):
+    from OCP.BRepGProp import BRepGProp
+    from OCP.Geom import Geom_BSplineSurface
+    from OCP.GProp import GProp_GProps
+    from OCP.TopAbs import TopAbs_FACE
+    from OCP.TopExp import TopExp_Explorer
+
+    from bonecad.tspline.occ import merged_surfaces, tensor_product_blocks
+    from bonecad.tspline_model.model import _occ_shape, to_scanner
+
+    patches = [model.tspline, *(c.tspline for c in model.caps)]
+    n_faces = 0
+    explorer = TopExp_Explorer(model.shape, TopAbs_FACE)
+    while explorer.More():
+        n_faces += 1
+        explorer.Next()
+    elements = sum(p.extraction.n_elements for p in patches)
+    assert n_faces == sum(len(tensor_product_blocks(p)) for p in patches) < elements // 4
+    # the merged B-spline faces are the T-spline itself (scanner coordinates)
+    tube = model.tspline
+    for surf, block in merged_surfaces(to_scanner(tube, model.frame)):
+        if not isinstance(surf, Geom_BSplineSurface):
+            continue
+        u0, u1, v0, v1 = surf.Bounds()
+        u, v = rng.uniform(u0, u1, 20), rng.uniform(v0, v1, 20)
+        got = np.array([surf.Value(float(a), float(b)).Coord() for a, b in zip(u, v)])
+        want = model.frame.to_scanner(tube.evaluate(u, v).points)
+        assert np.abs(got - want).max() < 1e-6
+    # and enclose the volume of the one-face-per-element solid
+    volumes = []
+    for shape in (model.shape, _occ_shape(patches, model.frame, merge=False)):
+        props = GProp_GProps()
+        BRepGProp.VolumeProperties_s(shape, props, 1e-8)
+        volumes.append(props.Mass())
+    assert abs(volumes[0] - volumes[1]) < 1e-6 * volumes[1]

@@ -11,7 +11,8 @@ Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
    (:mod:`.fit`), until the tolerances hold or the control-point budget is hit;
 3. fit a tensor-product B-spline to the same points and tolerances by
    refining whole knot lines, for the control-point comparison;
-4. cap the apex holes (:mod:`.caps`), extract Bezier patches, sew them into a
+4. cap the apex holes (:mod:`.caps`), extract Bezier patches, merge each
+   tensor-product block of them into one B-spline face, sew the faces into a
    closed solid in scanner coordinates (outward faces, positive volume).
 """
 from __future__ import annotations
@@ -277,18 +278,24 @@ def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
     return TSpline(ts.mesh, frame.to_scanner(ts.control_points), ts.weights)
 
 
-def _occ_shape(patches: list[TSpline], frame: AnatomicalFrame):
-    """Bezier faces of all patches (scanner coordinates), sewn into a closed solid with outward faces."""
+def _occ_shape(patches: list[TSpline], frame: AnatomicalFrame, *, merge: bool = True):
+    """Faces of all patches (scanner coordinates), sewn into a closed solid with outward faces.
+
+    merge : one B-spline face per tensor-product block of Bezier elements
+    (exactly the same surface, far fewer faces: DESIGN.md's lean STEP files);
+    False: one Bezier face per element.
+    """
     from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid
     from OCP.BRepGProp import BRepGProp
     from OCP.GProp import GProp_GProps
     from OCP.TopoDS import TopoDS
 
-    from bonecad.tspline.occ import bezier_faces, is_valid, sew
+    from bonecad.tspline.occ import bezier_faces, is_valid, merged_faces, sew
 
+    make_faces = merged_faces if merge else bezier_faces
     faces = []
     for ts in patches:
-        faces.extend(bezier_faces(to_scanner(ts, frame)))
+        faces.extend(make_faces(to_scanner(ts, frame)))
     # Neighbouring Bezier edges agree to rounding; a T-junction lying a few
     # micrometres from an element corner can still leave a pair unsewn at the
     # finest tolerance, so widen it (up to 10 um) until the solid closes.
