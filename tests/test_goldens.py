@@ -19,15 +19,20 @@ SAMPLES = 100_000
 TOLERANCE = 0.01  # one percentage point of surface per 0.1 mm band
 
 
-def _nurbs_deviation(stem: str, perturb_mm: float = 0.0):
+def _reference(stem: str):
     path = TIBIA_DIR / f"{stem}.stl"
     if not path.exists():
         pytest.skip(f"reference mesh {path} is absent")
-    from bonecad.nurbs.model import build_nurbs
-
     bone = bonecad.load_bone(path)
     frame = bonecad.anatomical_frame(bone)
-    shape = build_nurbs(contour_curves(bone, frame)).shape
+    return bone, frame, contour_curves(bone, frame)
+
+
+def _nurbs_deviation(stem: str, perturb_mm: float = 0.0):
+    from bonecad.nurbs.model import build_nurbs
+
+    bone, frame, contours = _reference(stem)
+    shape = build_nurbs(contours).shape
     if perturb_mm:
         shape = _moved(shape, perturb_mm)
     return shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=SAMPLES)
@@ -49,6 +54,16 @@ def test_nurbs_histogram_matches_golden(stem):
     assert_histogram_matches(deviation.mesh_to_cad.histogram, f"nurbs_{stem}", tolerance=TOLERANCE)
     for region, histogram in deviation.mesh_to_cad.region_histograms.items():
         assert_histogram_matches(histogram, f"nurbs_{stem}_{region}", tolerance=TOLERANCE)
+
+
+def test_tspline_histogram_matches_golden():
+    from bonecad.tspline_model.model import build_tspline_model
+
+    stem = REFERENCES[0]
+    bone, frame, contours = _reference(stem)
+    shape = build_tspline_model(bone, frame, contours, compare_tensor_product=False).shape
+    deviation = shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=SAMPLES)
+    assert_histogram_matches(deviation.mesh_to_cad.histogram, f"tspline_{stem}", tolerance=TOLERANCE)
 
 
 def test_perturbed_model_is_caught():
