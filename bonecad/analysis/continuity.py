@@ -30,9 +30,16 @@ from .tessellation import shape_faces
 CLASSES = ("gap", "C0", "G1", "G2")
 
 
+def _setting(key: str) -> float:
+    """An [analysis] default from bonecad/data/defaults.toml."""
+    from ..config import load_config
+
+    return float(load_config()["analysis"][key])
+
+
 @dataclass(frozen=True)
 class ContinuityTolerances:
-    """Thresholds of the seam classes; the reason for each default is given.
+    """Thresholds of the seam classes (defaults: [analysis] in defaults.toml); the reason for each is given.
 
     gap_mm : 0.01 mm, the sewing tolerance of the NURBS baseline (defaults.toml
         [nurbs]) and 10x below the deviation bands: smaller gaps are closed.
@@ -44,10 +51,10 @@ class ContinuityTolerances:
         flat, so a jump between two nearly flat faces is not magnified.
     """
 
-    gap_mm: float = 0.01
-    angle_deg: float = 0.1
-    curvature_jump: float = 0.05
-    curvature_radius_ref_mm: float = 1000.0
+    gap_mm: float = field(default_factory=lambda: _setting("continuity_gap_mm"))
+    angle_deg: float = field(default_factory=lambda: _setting("continuity_angle_deg"))
+    curvature_jump: float = field(default_factory=lambda: _setting("continuity_curvature_jump"))
+    curvature_radius_ref_mm: float = field(default_factory=lambda: _setting("continuity_curvature_radius_ref_mm"))
 
 
 @dataclass(frozen=True)

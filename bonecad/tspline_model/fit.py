@@ -39,9 +39,16 @@ from bonecad.tspline import KnotSegment, TSpline, insert_segments, refine_elemen
 log = logging.getLogger("bonecad")
 
 
+def _setting(key: str):
+    """A [tspline] default from bonecad/data/defaults.toml (the figures live there, not in code)."""
+    from bonecad.config import load_config
+
+    return load_config()["tspline"][key]
+
+
 @dataclass(frozen=True)
 class FitTolerances:
-    """When a fit is good enough, and how hard to try.
+    """When a fit is good enough, and how hard to try (defaults: [tspline] in defaults.toml).
 
     share_within : (share, mm): this share of the (weighted) points lies within mm.
     max_deviation_mm : no point beyond this.
@@ -59,14 +66,14 @@ class FitTolerances:
         refinement (an MRI slice staircase is not followed).
     """
 
-    share_within: tuple[float, float] = (0.99, 0.25)
-    max_deviation_mm: float = 1.0
-    rms_mm: float = 0.1
-    max_control_points: int = 20000
-    max_rounds: int = 12
-    min_element_mm: float = 0.5
-    mark_fraction: float = 0.8
-    noise_factor: float = 2.0
+    share_within: tuple[float, float] = field(default_factory=lambda: tuple(_setting("target_share_within_mm")))
+    max_deviation_mm: float = field(default_factory=lambda: float(_setting("max_deviation_mm")))
+    rms_mm: float = field(default_factory=lambda: float(_setting("rms_mm")))
+    max_control_points: int = field(default_factory=lambda: int(_setting("max_control_points")))
+    max_rounds: int = field(default_factory=lambda: int(_setting("max_rounds")))
+    min_element_mm: float = field(default_factory=lambda: float(_setting("min_element_mm")))
+    mark_fraction: float = field(default_factory=lambda: float(_setting("mark_fraction")))
+    noise_factor: float = field(default_factory=lambda: float(_setting("noise_factor")))
 
 
 @dataclass(frozen=True)
