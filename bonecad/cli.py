@@ -20,16 +20,13 @@ EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT = 0, 1, 2
 
 
 def _versions() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
     import numpy
-    import OCP  # noqa: F401
-    from OCP.Standard import Standard_Version  # noqa: F401
 
     try:
-        from importlib.metadata import version
-
-        ocp = version("cadquery-ocp-novtk")
-        b3d = version("build123d")
-    except Exception:  # pragma: no cover - metadata missing in odd installs
+        ocp, b3d = version("cadquery-ocp-novtk"), version("build123d")
+    except PackageNotFoundError:  # pragma: no cover - metadata missing in odd installs
         ocp = b3d = "unknown"
     return f"bonecad {__version__} (numpy {numpy.__version__}, OCP {ocp}, build123d {b3d})"
 
