@@ -175,7 +175,7 @@ def test_bad_region_labels_are_refused(sphere, sphere_fine):
         )
 
 
-def test_certified_closest_points_match_brute_force():
+def test_closest_points_match_brute_force():
     rng = np.random.default_rng(3)
     # a bumpy open grid surface with a few large triangles (planar cap case)
     n = 30

@@ -10,8 +10,7 @@ Method and error bound
 1. The shape is tessellated finely (:func:`~bonecad.analysis.tessellation.tessellate`,
    coverage checked against exact face areas) and each query point's nearest
    triangle is found exactly (:class:`~bonecad.analysis.closest.TriangleLocator`,
-   certified search) on shapes of several faces; on a single face the best of
-   the 4 triangles with the nearest centroids is enough to start step 2.
+   a bounding-box tree).
 2. On faces with a spline surface (all B-spline/Bezier faces, and analytic faces
    converted exactly), the point is projected onto the exact surface by
    Gauss-Newton from the (u, v) of that nearest point (``nurbs_eval.project``).
@@ -170,24 +169,15 @@ def signed_distance_to_shape(
     *,
     locator: TriangleLocator | None = None,
     residual_tol_mm: float = 1e-6,
-    certify: bool | None = None,
 ) -> SignedDistance:
     """Signed distances (mm, positive outside) of ``points`` (N, 3) to the tessellated shape.
 
-    Exact projection on each face's spline surface where it converges (module doc).
-    ``certify``: find the provably nearest triangle as the start (needed when
-    several faces meet: a start on the wrong face converges on that face); None
-    (default) certifies only shapes with more than one face. Uncertified, the
-    best of the 4 triangles with the nearest centroids is the start, which on
-    one smooth face lies in the foot point's basin; 2-3x faster.
+    Exact projection on each face's spline surface where it converges, started
+    from the nearest point of the tessellation (module doc).
     """
     points = np.asarray(points, dtype=np.float64)
     locator = locator or TriangleLocator(tess.vertices, tess.triangles)
-    # first guess (see ``certify``); points that keep a tessellation distance
-    # are searched again, certified, below
-    if certify is None:
-        certify = tess.face_count > 1
-    near = locator.query(points, k=8 if certify else 4, certify=certify)
+    near = locator.query(points)
     dist = np.empty(len(points))
     foot = np.empty((len(points), 3))
     face = tess.triangle_face[near.triangle]
@@ -212,8 +202,8 @@ def signed_distance_to_shape(
         _retry_across(tess, points, sel[stopped], proj.foot[stopped], face, residual_tol_mm, dist, foot, refined)
     rest = np.flatnonzero(~refined)
     if len(rest):
-        # the tessellation distance; the first search was certified already when certify is set
-        near = _subset(near, rest) if certify else locator.query(points[rest])
+        # the tessellation distance (exact nearest point of the tessellation)
+        near = _subset(near, rest)
         tri = tess.triangles[near.triangle]
         normal = np.einsum("nk,nkj->nj", near.barycentric, tess.normals[tri])
         dist[rest] = _signed(points[rest], near.points, normal)
