@@ -270,7 +270,8 @@ def _build_models(
     """Each requested model, its exports and analysis, then report.json/report.html.
 
     The NURBS model's analysis runs on the second core (``bonecad.parallel``)
-    while the T-spline model is built; its time is the child's own.
+    while the T-spline model is built (its time is the child's own), and the
+    T-spline model's zebra figure and continuity while its deviation is measured.
     """
     from .analysis.model import analyse_model
     from .analysis.report import write_report
@@ -297,7 +298,7 @@ def _build_models(
         with timings.stage("T-spline analysis"):
             result.reports["tspline"] = analyse_model(
                 "tspline", tspline.shape, bone, frame, stage_dir,
-                info={"faces": _face_count(tspline.shape), **tspline.summary()},
+                info={"faces": _face_count(tspline.shape), **tspline.summary()}, jobs=jobs,
             )
     if "nurbs" in analyses:
         with timings.stage("waiting for the NURBS analysis"):

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..anatomy.frame import AnatomicalFrame
 from ..mesh.bone_mesh import BoneMesh
+from ..parallel import JobGroup
 from .continuity import knot_continuity, seam_continuity
 from .deviation import shape_deviation
 from .render import deviation_map_png, histogram_png, zebra_png
@@ -44,16 +45,23 @@ def analyse_model(
     *,
     info: dict,
     sample_points: int | None = None,
+    jobs: JobGroup | None = None,
 ) -> ModelReport:
     """Deviation, continuity and figures (``{name}_deviation.png``, ``{name}_histogram.png``,
-    ``{name}_zebra.png``) of ``shape`` (a TopoDS_Shape in scanner mm) against ``bone``."""
+    ``{name}_zebra.png``) of ``shape`` (a TopoDS_Shape in scanner mm) against ``bone``.
+
+    jobs : a group of background jobs (``bonecad.parallel``): the zebra figure
+    and the continuity are then made on the second core while the deviation is
+    measured here; None: all in this process.
+    """
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     tess = tessellate(shape)
+    zebra_path = out_dir / f"{name}_zebra.png"
+    title = f"{name}: zebra (reflection lines)"
+    side = None if jobs is None else jobs.start(_zebra_and_continuity, shape, tess, zebra_path, view_frame, title)
     deviation = shape_deviation(
         bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=sample_points, tessellation=tess
     )
-    continuity = seam_continuity(shape, tessellation=tess)
-    knots = knot_continuity(shape)
     figures = {
         "deviation": deviation_map_png(
             out_dir / f"{name}_deviation.png", bone.vertices, bone.faces, deviation.vertex_deviation_mm, view_frame,
@@ -65,9 +73,18 @@ def analyse_model(
              **deviation.mesh_to_cad.region_histograms},
             title=f"{name}: share of surface per deviation band",
         ),
-        "zebra": zebra_png(out_dir / f"{name}_zebra.png", tess, view_frame, title=f"{name}: zebra (reflection lines)"),
     }
+    zebra, continuity, knots = (
+        _zebra_and_continuity(shape, tess, zebra_path, view_frame, title) if side is None else side.result()[0]
+    )
+    figures["zebra"] = zebra
     stats = deviation.mesh_to_cad.stats
     log.info("%s: RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", name, stats.rms_mm, stats.max_outside_mm,
              stats.max_inside_mm)
     return ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots, figures=figures)
+
+
+def _zebra_and_continuity(shape, tess, path: Path, view_frame: np.ndarray, title: str):
+    """The zebra figure, the seam continuity and the knot continuity of a tessellated shape."""
+    return (zebra_png(path, tess, view_frame, title=title), seam_continuity(shape, tessellation=tess),
+            knot_continuity(shape))

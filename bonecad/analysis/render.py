@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from ..errors import InputError
 from ..io.output import staged_file
@@ -266,8 +267,6 @@ def zebra_image(raster: Raster, *, stripes: int = 40, stripe_axis: str = "horizo
 
 def _figure(ncols: int, aspect: float):
     """A matplotlib Figure outside pyplot: no global backend switch (Jupyter's inline plots keep working)."""
-    from matplotlib.figure import Figure
-
     height = 7.0
     width = max(4.0, ncols * height * aspect + 1.6)
     return Figure(figsize=(width, height), dpi=110)
