@@ -159,6 +159,19 @@ def contours_dict(contours: ContourSet) -> dict:
     }
 
 
+def write_curves(contours: ContourSet, bone: BoneMesh, out_dir: Path) -> None:
+    """curves.step and curves.iges (the contour curves and the reference entities, scanner mm) and curves.png."""
+    from .curves.plot import curves_png
+
+    frame = contours.frame
+    entities = compound(frame_shapes(frame), "reference_entities")
+    shapes = compound([compound(curve_shapes(contours), "contour_curves"), entities], "bonecad_curves")
+    write_step(shapes, out_dir / "curves.step")
+    write_iges(shapes, out_dir / "curves.iges")
+    vertices, faces = bone_coordinates(bone, frame)
+    curves_png(out_dir / "curves.png", vertices, faces, contours)
+
+
 STAGES = ("frame", "curves", "models")
 MODELS = ("nurbs", "tspline")
 
@@ -207,8 +220,6 @@ def reconstruct_bone(
     models: also each model's STEP/IGES (nurbs.*, tspline.*), its analysis figures,
     report.json and report.html.
     """
-    from .curves.plot import curves_png
-
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got {until!r}")
     unknown = set(models) - set(MODELS)
@@ -224,19 +235,13 @@ def reconstruct_bone(
                 bone, config=config, distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm
             )
         result = Reconstruction(bone=bone, frame=frame, timings_s=timings, out_dir=out_dir)
-        entities = compound(frame_shapes(frame), "reference_entities")
         if until == "frame":
             with timings.stage("reference entities to STEP"):
-                write_step(entities, stage_dir / "curves.step")
+                write_step(compound(frame_shapes(frame), "reference_entities"), stage_dir / "curves.step")
         else:
             with timings.stage("contour curves"):
                 result.contours = contour_curves(bone, frame, config=config)
-            with timings.stage("curves to STEP and IGES"):
-                shapes = compound([compound(curve_shapes(result.contours), "contour_curves"), entities], "bonecad_curves")
-                write_step(shapes, stage_dir / "curves.step")
-                write_iges(shapes, stage_dir / "curves.iges")
-            vertices, faces = bone_coordinates(bone, frame)
-            curves_figure = jobs.start(curves_png, stage_dir / "curves.png", vertices, faces, result.contours)
+            curve_files = jobs.start(write_curves, result.contours, bone, stage_dir)
             write_json(contours_dict(result.contours), stage_dir / "curves.json")
             for name, summary in result.contours.summary().items():
                 log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name,
@@ -245,7 +250,7 @@ def reconstruct_bone(
         if until == "models":
             _build_models(result, stage_dir, models, apex_fill, compare_tensor_product, config, timings, jobs)
         if until != "frame":
-            timings["curves figure"] = round(curves_figure.result()[1], 3)
+            timings["curves to STEP, IGES and PNG"] = round(curve_files.result()[1], 3)
         write_json({"input": mesh_summary(bone), **frame.as_dict(), "timings_s": dict(timings)}, stage_dir / "frame.json")
         result.files = sorted(p.name for p in stage_dir.iterdir())
     result.timings_s = dict(timings)

@@ -161,3 +161,33 @@ def test_removal_refuses_meshes_that_lose_suitability():
         )
     with pytest.raises(InputError, match="not a knot line"):
         remove_segments(ts, [KnotSegment("s", 0.123456, lines[1], lines[3])])
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), picks=st.lists(st.floats(0.0, 1.0), min_size=2, max_size=10), rounds=st.integers(1, 3))
+def test_one_way_splits_keep_the_surface_and_add_fewer_control_points(seed, picks, rounds):
+    ts = four = tube(10, 7, seed=seed % 5, rational=bool(seed % 2))
+    rng = np.random.default_rng(seed)
+    s, t = random_params(ts, 2000, rng)
+    before = ts.evaluate(s, t).points
+    for _ in range(rounds):
+        n_e = ts.extraction.n_elements
+        e = sorted({int(p * (n_e - 1)) for p in picks})
+        axes = np.zeros((len(e), 2), dtype=bool)
+        axes[np.arange(len(e)), rng.integers(0, 2, len(e))] = True  # each element halved one way only
+        ts = refine_elements(ts, e, axes).tspline
+        four = refine_elements(four, sorted({int(p * (four.extraction.n_elements - 1)) for p in picks})).tspline
+        assert check_suitability(ts.mesh).suitable
+    assert np.abs(ts.evaluate(s, t).points - before).max() < 1e-9 * size(ts)
+    assert ts.n_control < four.n_control
+
+
+def test_one_way_split_of_one_element_adds_one_line_segment():
+    ts = tube(40, 30, seed=4)
+    ext = ts.extraction
+    e = int(np.flatnonzero((ext.index_bounds[:, 0] == 20) & (ext.index_bounds[:, 2] == 15))[0])
+    for axes, count in (([[True, False]], 2), ([[False, True]], 2)):
+        r = refine_elements(ts, [e], np.array(axes))
+        assert r.added == count  # the two ends of the new segment, nothing else on a tensor grid
+    with pytest.raises(InputError, match="axes"):
+        refine_elements(ts, [e], np.ones((2, 2), dtype=bool))

@@ -157,6 +157,18 @@ class _Edges:
 
 
 # ------------------------------------------------------------------- closure
+def _cover(pairs: np.ndarray) -> list[int]:
+    """T-junctions to extend so that each offending pair has one of them: a
+    greedy vertex cover (the junction in more pairs first, then the s-direction
+    one), so a pair costs one extension instead of two."""
+    degree = np.bincount(pairs.ravel())
+    chosen: set[int] = set()
+    for h, v in pairs.tolist():
+        if h not in chosen and v not in chosen:
+            chosen.add(v if degree[v] > degree[h] else h)
+    return sorted(chosen)
+
+
 def _make_suitable(edges: _Edges) -> TMesh:
     """Extend T-junctions with meeting extensions until the mesh is analysis-suitable."""
     for _ in range(_MAX_ROUNDS):
@@ -166,7 +178,7 @@ def _make_suitable(edges: _Edges) -> TMesh:
             return mesh
         tj = report.junctions
         _, right, _, up = mesh.edge_flags()
-        for k in np.unique(report.pairs):
+        for k in _cover(report.pairs):
             i, j = tj.points[k]
             # close the missing edge up to the next perpendicular line
             if tj.axis[k] == 0:
@@ -354,17 +366,27 @@ def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float 
     return Refinement(new, matrix, n_new - ts.n_control, requested)
 
 
-def refine_elements(ts: TSpline, elements: Sequence[int]) -> Refinement:
-    """Split Bezier elements into four at their parametric midlines (exact)."""
+def refine_elements(ts: TSpline, elements: Sequence[int], axes: np.ndarray | None = None) -> Refinement:
+    """Split Bezier elements at their parametric midlines (exact).
+
+    axes : optional (n, 2) bool per element, [halve in s (insert its s-midline),
+        halve in t]; default both (each element into four). An element with
+        neither is left alone.
+    """
     ext = ts.extraction
     e = np.asarray(elements, dtype=np.int64).ravel()
     if e.size and (e.min() < 0 or e.max() >= ext.n_elements):
         raise InputError(f"elements: indices must lie in 0..{ext.n_elements - 1}")
+    split = np.ones((e.size, 2), dtype=bool) if axes is None else np.asarray(axes, dtype=bool)
+    if split.shape != (e.size, 2):
+        raise InputError(f"axes: expected ({e.size}, 2) bool, got {split.shape}")
     sb, tb = ext.s_bounds[e], ext.t_bounds[e]
     segs = []
-    for (s0, s1), (t0, t1) in zip(sb, tb):
-        segs.append(KnotSegment("s", 0.5 * (s0 + s1), t0, t1))
-        segs.append(KnotSegment("t", 0.5 * (t0 + t1), s0, s1))
+    for (s0, s1), (t0, t1), (in_s, in_t) in zip(sb.tolist(), tb.tolist(), split.tolist()):
+        if in_s:
+            segs.append(KnotSegment("s", 0.5 * (s0 + s1), t0, t1))
+        if in_t:
+            segs.append(KnotSegment("t", 0.5 * (t0 + t1), s0, s1))
     return insert_segments(ts, segs)
 
 

@@ -14,10 +14,11 @@ the squared distance; Hoschek 1988, "Intrinsic parametrization for
 approximation"; Piegl & Tiller, The NURBS Book, sec. 9.4), and the surface is
 refined where the error stays above the tolerance:
 
-- ``mode="local"``: the failing Bezier elements are split into four by exact,
+- ``mode="local"``: the failing Bezier elements are halved, across the
+  direction their residual varies along (or both), by exact,
   analysis-suitable local refinement (Scott, Li, Sederberg, Hughes 2012);
-- ``mode="global"``: whole knot lines through the failing elements are
-  inserted, which keeps a tensor product (the comparison surface).
+- ``mode="global"``: the same knot lines, but whole, are inserted, which
+  keeps a tensor product (the comparison surface).
 
 Everything here is numpy/scipy on the parameter domain of the T-spline; it
 knows nothing of bones.
@@ -35,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from bonecad.errors import FitError, InputError
 from bonecad.tspline import KnotSegment, TSpline, insert_segments, refine_elements
+from bonecad.tspline.basis import bernstein3
 
 log = logging.getLogger("bonecad")
 
@@ -60,6 +62,12 @@ class FitTolerances:
     mark_fraction : each round refines the fewest elements that hold this
         fraction of the point weight beyond the tolerance (Doerfler marking),
         and every element with a point beyond ``max_deviation_mm``.
+    mark_deficit_factor : near the target, mark instead only this many times
+        the point weight the share target still misses (no last-round overshoot).
+    split_anisotropy : a marked element is halved across one direction only
+        when the part of its residual that varies along that direction (between
+        four bins of the local coordinate) is this many times the part varying
+        along the other; else it is split into four (inf: always four).
     noise_factor : noise-aware stopping (with ``fit_adaptive(noise=...)``): a
         point whose distance is within this many times the local noise level
         of the data is fitted as well as the data allow, and does not ask for
@@ -74,6 +82,8 @@ class FitTolerances:
     min_element_mm: float = field(default_factory=lambda: float(_setting("min_element_mm")))
     mark_fraction: float = field(default_factory=lambda: float(_setting("mark_fraction")))
     noise_factor: float = field(default_factory=lambda: float(_setting("noise_factor")))
+    split_anisotropy: float = field(default_factory=lambda: float(_setting("split_anisotropy")))
+    mark_deficit_factor: float = field(default_factory=lambda: float(_setting("mark_deficit_factor")))
 
 
 @dataclass(frozen=True)
@@ -149,7 +159,7 @@ def project_points(
     cur = ts.evaluate(s, t, order=2)
     r = cur.points - points
     dist2 = np.einsum("ij,ij->i", r, r)
-    for _ in range(iterations):
+    for it in range(iterations):
         su, tv = cur.ds, cur.dt
         g0 = np.einsum("ij,ij->i", su, r)
         g1 = np.einsum("ij,ij->i", tv, r)
@@ -181,11 +191,11 @@ def project_points(
             step *= 0.5
         moved = np.abs(new_s - s).max(initial=0.0) + np.abs(new_t - t).max(initial=0.0)
         s, t = new_s, new_t
+        if moved < 1e-10 or it == iterations - 1:
+            break  # dist2 already holds the distances at the accepted steps
         cur = ts.evaluate(s, t, order=2)
         r = cur.points - points
-        if moved < 1e-10:
-            break
-    return s, t, np.sqrt(np.einsum("ij,ij->i", r, r))
+    return s, t, np.sqrt(dist2)
 
 
 def initial_parameters(
@@ -266,33 +276,40 @@ def voxel_step_mm(points: np.ndarray, *, max_distinct: float = 0.05) -> float:
 
 
 # --------------------------------------------------------------- least squares
-def fairness_matrix(ts: TSpline, *, gauss: int = 2) -> sp.csr_matrix:
-    """Thin-plate energy of the surface as a quadratic form in the control points.
+def _bernstein_moments() -> np.ndarray:
+    """(3, 4, 4): integrals over [0, 1] of products of the cubic Bernstein
+    polynomials' derivatives of order 0, 1, 2 (4-point Gauss: exact)."""
+    g, gw = np.polynomial.legendre.leggauss(4)
+    b = bernstein3(0.5 * (g + 1.0), 2)
+    return np.einsum("q,kqi,kqj->kij", 0.5 * gw, b, b)
 
-    Returns F (n, n) with E_fair = sum over coordinates of P^T F P, by
-    Gauss-Legendre quadrature (``gauss`` points per direction and element),
-    integrated over the parameter domain (not averaged: against the mean
+
+_MOMENTS = _bernstein_moments()
+
+
+def _block_diagonal(blocks: np.ndarray) -> sp.csr_matrix:
+    """(n_e, 16, 16) element blocks -> csr (16 n_e, 16 n_e), the layout of the extraction operator's rows."""
+    n = len(blocks)
+    idx = np.arange(16 * n).reshape(n, 1, 16)
+    cols = np.broadcast_to(idx, (n, 16, 16)).ravel()
+    return sp.csr_matrix((blocks.ravel(), cols, np.arange(0, 256 * n + 1, 16)), shape=(16 * n, 16 * n))
+
+
+def fairness_blocks(ts: TSpline) -> np.ndarray:
+    """(n_e, 16, 16) thin-plate energy of each Bezier element in its Bernstein coefficients.
+
+    E_fair = integral of |S_ss|^2 + 2 |S_st|^2 + |S_tt|^2 over the parameter
+    domain (mm^2, exact for the bicubic elements), = sum_e q_e^T K_e q_e for
+    Bezier points q_e = C_e^T P. Integrated, not averaged: against the mean
     squared distance of the data term, a fixed weight then smooths a large
-    domain as firmly as a small one per unit of parameter area).
+    domain as firmly as a small one per unit of parameter area.
     """
     ext = ts.extraction
-    g, gw = np.polynomial.legendre.leggauss(gauss)
-    g, gw = 0.5 * (g + 1.0), 0.5 * gw
-    uu, vv = np.meshgrid(g, g, indexing="ij")
-    ww = np.outer(gw, gw).ravel()
     hs = np.diff(ext.s_bounds, axis=1)[:, 0]
     ht = np.diff(ext.t_bounds, axis=1)[:, 0]
-    s = (ext.s_bounds[:, :1] + uu.ravel()[None, :] * hs[:, None]).ravel()
-    t = (ext.t_bounds[:, :1] + vv.ravel()[None, :] * ht[:, None]).ravel()
-    # quadrature points sit strictly inside their elements: locate() finds the right one
-    area = (hs * ht)[:, None] * ww[None, :]
-    q = np.sqrt(area.ravel())
-    d = sp.diags(q)
-    f = sp.csr_matrix((ts.n_control, ts.n_control))
-    for ds, dt, c in ((2, 0, 1.0), (1, 1, 2.0), (0, 2, 1.0)):
-        m = d @ ts.basis_matrix(s, t, ds=ds, dt=dt)
-        f = f + c * (m.T @ m)
-    return f.tocsr()
+    m, d1, d2 = _MOMENTS
+    return ((ht / hs**3)[:, None, None] * np.kron(d2, m) + (2.0 / (hs * ht))[:, None, None] * np.kron(d1, d1)
+            + (hs / ht**3)[:, None, None] * np.kron(m, d2))
 
 
 def solve_control_points(
@@ -303,37 +320,39 @@ def solve_control_points(
     weights: np.ndarray | None = None,
     *,
     fairness: float = 1e-4,
-    fixed: np.ndarray | None = None,
-    fairness_form: sp.csr_matrix | None = None,
 ) -> TSpline:
     """Least-squares control points for points at given parameters (same T-mesh).
 
+    ts : a polynomial T-spline (weights 1 up to rounding), the mesh to fit on.
     points : (n, 3) mm; weights : (n,) >= 0 (None: equal).
     fairness : weight lambda of the thin-plate term (integral over the
         parameter domain) against the mean squared distance; it keeps the
         surface from folding where no datum holds it.
-    fixed : optional (n_control,) bool, control points kept as they are in ``ts``.
-    fairness_form : ``fairness_matrix(ts)`` when already computed for this mesh.
-    Returns a polynomial T-spline (weights 1) on the same mesh.
+    The normal equations are assembled per Bezier element (Bernstein Gram
+    matrix of the element's points plus lambda times its thin-plate block)
+    and mapped to control points by the extraction operator C: N = C^T (G + lambda K) C.
+    Returns a polynomial T-spline on the same mesh.
     """
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     if points.shape != (n, 3) or np.shape(s) != (n,) or np.shape(t) != (n,):
         raise InputError(f"points, s, t: expected (n, 3), (n,), (n,), got {points.shape}, {np.shape(s)}, {np.shape(t)}")
+    if np.abs(ts.weights - 1.0).max() > 1e-9:
+        raise InputError("solve_control_points: expected a polynomial T-spline (weights 1)")
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
     w = w / w.sum()
-    basis = ts.basis_matrix(s, t)
-    normal = (basis.T @ sp.diags(w) @ basis).tocsr()
-    rhs = basis.T @ (w[:, None] * points)
+    ext = ts.extraction
+    elem, u, v = ext.locate(s, t)
+    rows = (bernstein3(u)[0][:, :, None] * bernstein3(v)[0][:, None, :]).reshape(n, 16)
+    bern = sp.csr_matrix((rows.ravel(), (16 * elem[:, None] + np.arange(16)).ravel(), np.arange(0, 16 * n + 1, 16)),
+                         shape=(n, 16 * ext.n_elements))
+    weighted = sp.diags(w) @ bern
+    inner = bern.T @ weighted
     if fairness > 0:
-        normal = normal + fairness * (fairness_matrix(ts) if fairness_form is None else fairness_form)
-    if fixed is not None and fixed.any():
-        free = np.flatnonzero(~fixed)
-        known = ts.control_points[fixed]
-        rhs = rhs[free] - normal[free][:, np.flatnonzero(fixed)] @ known
-        normal = normal[free][:, free]
-    else:
-        free = np.arange(ts.n_control)
+        inner = inner + fairness * _block_diagonal(fairness_blocks(ts))
+    op = ext.operator
+    normal = (op.T @ inner @ op).tocsr()
+    rhs = op.T @ (weighted.T @ points)
     # tiny Tikhonov term: control points no datum or fairness reaches stay put
     scale = normal.diagonal().max()
     normal = normal + sp.identity(normal.shape[0]) * (1e-12 * scale)
@@ -342,8 +361,7 @@ def solve_control_points(
         lu = spla.splu(normal.tocsc(), permc_spec="MMD_AT_PLUS_A")
     except RuntimeError as exc:
         raise FitError(f"least-squares fit: singular normal equations ({exc})") from exc
-    cp = ts.control_points.copy()
-    cp[free] = lu.solve(np.asarray(rhs))
+    cp = lu.solve(np.asarray(rhs))
     if not np.all(np.isfinite(cp)):
         raise FitError("least-squares fit produced non-finite control points")
     return TSpline(ts.mesh, cp, np.ones(ts.n_control))
@@ -362,60 +380,105 @@ def fit_stats(ts: TSpline, distance: np.ndarray, weights: np.ndarray, within_mm:
 
 
 def element_sizes_mm(ts: TSpline) -> np.ndarray:
-    """(n_e,) physical size of each Bezier element: the shorter of its two
-    mid-lines' chord lengths (mm), so the stopping size means the same at the
-    apex, where parameter lines crowd, as on the shaft."""
+    """(n_e, 2) physical size of each Bezier element along s and along t: the
+    chord lengths of its two mid-lines (mm), so the stopping size means the
+    same at the apex, where parameter lines crowd, as on the shaft."""
     ext = ts.extraction
     sm, tm = ext.s_bounds.mean(axis=1), ext.t_bounds.mean(axis=1)
     eps_s = 1e-9 * np.diff(ext.s_bounds, axis=1)[:, 0]
     eps_t = 1e-9 * np.diff(ext.t_bounds, axis=1)[:, 0]
-    a = ts.evaluate(ext.s_bounds[:, 0] + eps_s, tm).points
-    b = ts.evaluate(ext.s_bounds[:, 1] - eps_s, tm).points
-    c = ts.evaluate(sm, ext.t_bounds[:, 0] + eps_t).points
-    d = ts.evaluate(sm, ext.t_bounds[:, 1] - eps_t).points
-    return np.minimum(np.linalg.norm(b - a, axis=1), np.linalg.norm(d - c, axis=1))
+    n = ext.n_elements
+    ends = ts.evaluate(np.concatenate([ext.s_bounds[:, 0] + eps_s, ext.s_bounds[:, 1] - eps_s, sm, sm]),
+                       np.concatenate([tm, tm, ext.t_bounds[:, 0] + eps_t, ext.t_bounds[:, 1] - eps_t])).points
+    a, b, c, d = ends[:n], ends[n : 2 * n], ends[2 * n : 3 * n], ends[3 * n :]
+    return np.stack([np.linalg.norm(b - a, axis=1), np.linalg.norm(d - c, axis=1)], axis=1)
 
 
-def _marked_elements(ts: TSpline, s, t, distance, weights, tol: FitTolerances, frozen=None,
-                     stalled: np.ndarray | None = None) -> np.ndarray:
+def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, frozen=None,
+                     stalled: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Elements to refine: Doerfler marking of the weight beyond the tolerance.
 
-    Elements are ranked by the weight (area) of their points beyond the
-    tolerance distance; the smallest set holding ``mark_fraction`` of that
-    weight is marked, plus every element with a point beyond the maximum
-    deviation. Elements below ``min_element_mm`` (physical size) and those
-    ``frozen`` (a function of element bounds -> bool) are left alone, and
-    ``stalled`` points ((n,) bool, within the data's noise, see ``FitTolerances.noise_factor``) count
-    for nothing.
+    elem : (n,) element of each point. Elements are ranked by the weight
+    (area) of their points beyond the tolerance distance; the smallest set
+    holding ``mark_fraction`` of that weight (near the target, only
+    ``mark_deficit_factor`` times the weight the share target still misses)
+    is marked, plus every element
+    with a point beyond the maximum deviation. An element may be halved
+    along s (t) only while its physical size along s (t) is at least twice
+    ``min_element_mm``; those ``frozen`` (a function of element bounds ->
+    bool) are left alone, and ``stalled`` points ((n,) bool, within the
+    data's noise, see ``FitTolerances.noise_factor``) count for nothing.
+    Returns (marked element indices, (n_e, 2) bool: which directions may be halved).
     """
     ext = ts.extraction
-    elem, _, _ = ext.locate(s, t)
     n_e = ext.n_elements
     live = np.ones(len(distance), dtype=bool) if stalled is None else ~stalled
     bad = (distance > tol.share_within[1]) & live
     wbad = np.bincount(elem, weights * bad, minlength=n_e)
     worst = np.zeros(n_e)
     np.maximum.at(worst, elem, np.where(live, distance, 0.0))
-    eligible = element_sizes_mm(ts) >= 2 * tol.min_element_mm
+    halvable = element_sizes_mm(ts) >= 2 * tol.min_element_mm
+    eligible = halvable.any(axis=1)
     if frozen is not None:
         eligible &= ~frozen(ext.s_bounds, ext.t_bounds)
     wbad = np.where(eligible, wbad, 0.0)
-    order = np.argsort(-wbad)
+    order = np.argsort(-wbad, kind="stable")
     cum = np.cumsum(wbad[order])
     marked = np.zeros(n_e, dtype=bool)
     if cum[-1] > 0:
-        k = int(np.searchsorted(cum, tol.mark_fraction * cum[-1])) + 1
+        deficit = tol.share_within[0] * weights.sum() - weights[distance <= tol.share_within[1]].sum()
+        fraction = tol.mark_fraction if deficit <= 0 else min(tol.mark_fraction, tol.mark_deficit_factor * deficit / cum[-1])
+        k = int(np.searchsorted(cum, fraction * cum[-1])) + 1
         marked[order[:k]] = True
     marked |= worst > tol.max_deviation_mm
-    return np.flatnonzero(marked & eligible & ((wbad > 0) | (worst > tol.max_deviation_mm)))
+    return np.flatnonzero(marked & eligible & ((wbad > 0) | (worst > tol.max_deviation_mm))), halvable
+
+
+def _split_axes(marked: np.ndarray, elem, u, v, residual, weights, halvable, anisotropy: float) -> np.ndarray:
+    """(len(marked), 2) bool: halve each marked element in s, in t, or both.
+
+    residual : (n,) signed distance of each point (mm); u, v : its local
+    coordinates in its element. The residual a refinement along s can absorb
+    varies with u: its weighted between-bin variance over four bins of u
+    (likewise v). The element is halved only along s when that exceeds
+    ``anisotropy`` times the v figure (and only along t in the mirror case),
+    else both ways; directions below the size limit (``halvable``) are dropped.
+    """
+    axes = np.ones((len(marked), 2), dtype=bool)
+    if np.isfinite(anisotropy) and len(marked):
+        slot = np.full(len(halvable), -1)
+        slot[marked] = np.arange(len(marked))
+        k = slot[elem]
+        sel = k >= 0
+        k, w, r = k[sel], weights[sel], residual[sel]
+        n = len(marked)
+        wsum = np.bincount(k, w, minlength=n)
+        mean2 = np.bincount(k, w * r, minlength=n) ** 2 / np.maximum(wsum, 1e-300)
+        spread = []
+        for x in (u[sel], v[sel]):
+            b = k * 4 + np.minimum((x * 4).astype(np.int64), 3)
+            wb = np.bincount(b, w, minlength=4 * n)
+            rb = np.bincount(b, w * r, minlength=4 * n)
+            between = (rb**2 / np.maximum(wb, 1e-300)).reshape(n, 4).sum(axis=1) - mean2
+            spread.append(np.maximum(between, 0.0))
+        axes[:, 1] = ~(spread[0] > anisotropy * spread[1])
+        axes[:, 0] = ~(spread[1] > anisotropy * spread[0])
+    axes &= halvable[marked]
+    # an element that may be halved one way only is halved that way
+    return axes | (~axes.any(axis=1, keepdims=True) & halvable[marked])
 
 
 def _meets_up_to_noise(distance: np.ndarray, weights: np.ndarray, stalled: np.ndarray, tol: FitTolerances) -> bool:
     """The tolerances hold when points within the data's noise count as fitted:
     the share target on (within | stalled), and no point beyond the noise and
     beyond the maximum deviation. (The RMS bar is not asked: on a staircase
-    the noise alone sets it.)"""
-    fitted = (distance <= tol.share_within[1]) | stalled
+    the noise alone sets it.) Only when the noisy points beyond the tolerance
+    outweigh the share the target leaves over (1 - share): else the strict
+    target is reachable without following the noise, and the fit goes on."""
+    beyond = distance > tol.share_within[1]
+    if _share(weights, stalled & beyond) <= 1.0 - tol.share_within[0]:
+        return False
+    fitted = ~beyond | stalled
     return _share(weights, fitted) >= tol.share_within[0] and not np.any((distance > tol.max_deviation_mm) & ~stalled)
 
 
@@ -423,19 +486,27 @@ def _share(weights: np.ndarray, mask: np.ndarray) -> float:
     return float(weights[mask].sum() / weights.sum())
 
 
-def _refine_globally(ts: TSpline, elements: np.ndarray) -> TSpline:
-    """Insert complete knot lines through the middle of the given elements (tensor product kept)."""
+def _refine_globally(ts: TSpline, elements: np.ndarray, axes: np.ndarray) -> TSpline:
+    """Insert complete knot lines through the middle of the given elements (tensor product kept):
+    an s-line where ``axes[:, 0]``, a t-line where ``axes[:, 1]``."""
     ext = ts.extraction
     mesh = ts.mesh
     (s0, s1), (t0, t1) = mesh.s_range, mesh.t_range
-    s_mid = np.unique(np.round(ext.s_bounds[elements].mean(axis=1), 12))
-    t_mid = np.unique(np.round(ext.t_bounds[elements].mean(axis=1), 12))
+    s_mid = np.unique(np.round(ext.s_bounds[elements[axes[:, 0]]].mean(axis=1), 12))
+    t_mid = np.unique(np.round(ext.t_bounds[elements[axes[:, 1]]].mean(axis=1), 12))
     segs = [KnotSegment("s", float(v), t0, t1) for v in s_mid]
     if mesh.periodic:
         segs += [KnotSegment("t", float(v), s0, s0 + mesh.s_period) for v in t_mid]
     else:
         segs += [KnotSegment("t", float(v), s0, s1) for v in t_mid]
     return insert_segments(ts, segs).tspline
+
+
+def _signed_distance(ts: TSpline, points: np.ndarray, s, t, distance: np.ndarray) -> np.ndarray:
+    """(n,) distance of each point from the surface (mm), positive on the side the normal ds x dt points to."""
+    sample = ts.evaluate(s, t, order=1)
+    side = np.einsum("ij,ij->i", points - sample.points, np.cross(sample.ds, sample.dt))
+    return np.where(side < 0, -distance, distance)
 
 
 def fit_adaptive(
@@ -478,16 +549,15 @@ def fit_adaptive(
     stopped = ""
     noise_mm = None if noise is None else tol.noise_factor * np.asarray(noise, dtype=np.float64)
     for round_ in range(tol.max_rounds + 1):
-        form = fairness_matrix(ts) if fairness > 0 else None
         # refinement keeps the surface, so after the first round one correction suffices
         for _ in range(corrections if round_ == 0 else 1):
             if constraints is None:
-                ts = solve_control_points(ts, s, t, points, w, fairness=fairness, fairness_form=form)
+                ts = solve_control_points(ts, s, t, points, w, fairness=fairness)
             else:
                 cp_, cs_, ct_, cw_ = constraints
                 ts = solve_control_points(ts, np.concatenate([s, cs_]), np.concatenate([t, ct_]),
                                           np.vstack([points, cp_]), np.concatenate([w, cw_]),
-                                          fairness=fairness, fairness_form=form)
+                                          fairness=fairness)
             s, t, dist = project_points(ts, points, s, t, iterations=3 if round_ == 0 else 2)
         stats = fit_stats(ts, dist, w, tol.share_within[1])
         history.append(stats)
@@ -503,7 +573,8 @@ def fit_adaptive(
         if round_ == tol.max_rounds:
             stopped = f"round limit ({tol.max_rounds}) reached"
             break
-        marked = _marked_elements(ts, s, t, dist, w, tol, frozen, stalled)
+        elem, u, v = ts.extraction.locate(s, t)
+        marked, halvable = _marked_elements(ts, elem, dist, w, tol, frozen, stalled)
         if marked.size == 0:
             stopped = f"no element larger than {2 * tol.min_element_mm} mm misses the tolerance"
             if stalled is not None:
@@ -511,7 +582,9 @@ def fit_adaptive(
                             f" of the surface lies beyond {tol.share_within[1]} mm but within "
                             f"{tol.noise_factor} x the local noise)")
             break
-        new = refine_elements(ts, marked).tspline if mode == "local" else _refine_globally(ts, marked)
+        axes = _split_axes(marked, elem, u, v, _signed_distance(ts, points, s, t, dist), w, halvable,
+                           tol.split_anisotropy)
+        new = refine_elements(ts, marked, axes).tspline if mode == "local" else _refine_globally(ts, marked, axes)
         if new.n_control > tol.max_control_points:
             stopped = f"control-point budget ({tol.max_control_points}) reached: the next round needs {new.n_control}"
             break

@@ -130,6 +130,8 @@ def tolerances(settings: dict) -> FitTolerances:
         min_element_mm=float(settings["min_element_mm"]),
         mark_fraction=float(settings["mark_fraction"]),
         noise_factor=float(settings["noise_factor"]),
+        split_anisotropy=float(settings["split_anisotropy"]),
+        mark_deficit_factor=float(settings["mark_deficit_factor"]),
     )
 
 
@@ -286,8 +288,8 @@ def _occ_shape(patches: list[TSpline], frame: AnatomicalFrame, *, merge: bool = 
     False: one Bezier face per element.
     """
     from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid
-    from OCP.BRepGProp import BRepGProp
-    from OCP.GProp import GProp_GProps
+    from OCP.BRepClass3d import BRepClass3d_SolidClassifier
+    from OCP.TopAbs import TopAbs_IN
     from OCP.TopoDS import TopoDS
 
     from bonecad.tspline.occ import bezier_faces, is_valid, merged_faces, sew
@@ -310,9 +312,11 @@ def _occ_shape(patches: list[TSpline], frame: AnatomicalFrame, *, merge: bool = 
     else:
         raise KernelError(f"the T-spline faces ({len(faces)}) do not sew into a valid closed solid "
                           f"(tolerances up to {_SEWING_TOLERANCES_MM[-1]} mm)")
-    props = GProp_GProps()
-    BRepGProp.VolumeProperties_s(solid, props)
-    if props.Mass() < 0:
+    # a reversed solid holds the point at infinity (ray classification: a
+    # fraction of the time of a volume integral just for its sign)
+    classifier = BRepClass3d_SolidClassifier(solid)
+    classifier.PerformInfinitePoint(_SEWING_TOLERANCES_MM[0])
+    if classifier.State() == TopAbs_IN:
         solid.Reverse()
     return solid
 
