@@ -59,14 +59,15 @@ def main() -> None:
     ext = timed("Bezier extraction incl. ray casting (~10 k elements)", 2.0, fresh_extraction)
     print(f"    {ext.n_elements} elements, {len(ext.pair_anchor)} element-function pairs")
 
+    from bonecad.io.brep import is_valid, sew
     from bonecad.tspline import occ
 
     mid = tube(64, 80)
     mid = refine_elements(mid, rng.choice(mid.extraction.n_elements, 40, replace=False)).tspline
     print(f"sewing test: {mid.extraction.n_elements} elements")
     faces = timed("Bezier faces", 10.0, lambda: occ.bezier_faces(mid), repeat=1)
-    shell = timed("sewing into one shell", 10.0, lambda: occ.sew(faces), repeat=1)
-    print(f"    valid shell: {occ.is_valid(shell)}")
+    shell = timed("sewing into one shell", 10.0, lambda: sew(faces, tolerance_mm=1e-6, closed=False)[0], repeat=1)
+    print(f"    valid shell: {is_valid(shell)}")
 
 
 if __name__ == "__main__":

@@ -257,17 +257,6 @@ def reconstruct_bone(
     return result
 
 
-def _face_count(shape) -> int:
-    from OCP.TopAbs import TopAbs_FACE
-    from OCP.TopExp import TopExp_Explorer
-
-    explorer, count = TopExp_Explorer(shape, TopAbs_FACE), 0
-    while explorer.More():
-        count += 1
-        explorer.Next()
-    return count
-
-
 def _build_models(
     result: Reconstruction, stage_dir: Path, models, apex_fill, compare_tensor_product, config, timings: Timings,
     jobs: parallel.JobGroup,
@@ -291,7 +280,7 @@ def _build_models(
             write_nurbs(nurbs, stage_dir)
         result.models["nurbs"] = nurbs
         analyses["nurbs"] = jobs.start(analyse_model, "nurbs", nurbs.shape, bone, frame, stage_dir,
-                                       info=nurbs.summary())
+                                       info=nurbs.summary(), face_names=list(nurbs.face_names))
     if "tspline" in models:
         from .tspline_model.model import build_tspline_model, write_tspline
 
@@ -303,7 +292,8 @@ def _build_models(
         with timings.stage("T-spline analysis"):
             result.reports["tspline"] = analyse_model(
                 "tspline", tspline.shape, bone, frame, stage_dir,
-                info={"faces": _face_count(tspline.shape), **tspline.summary()}, jobs=jobs,
+                info={"faces": len(tspline.face_names), **tspline.summary()},
+                face_names=list(tspline.face_names), jobs=jobs,
             )
     if "nurbs" in analyses:
         with timings.stage("waiting for the NURBS analysis"):

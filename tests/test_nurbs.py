@@ -12,6 +12,7 @@ from bonecad.curves.bspline import BSplineCurve
 from bonecad.curves.contours import contour_curves
 from bonecad.errors import InputError
 from bonecad.nurbs import FACE_NAMES, BSplineSurface, build_nurbs, write_nurbs
+from bonecad.io import brep
 from bonecad.nurbs import occ
 from bonecad.nurbs.surface import interpolate_clamped, interpolate_periodic, periodic_knots
 
@@ -81,8 +82,8 @@ def patch_model(contours):
 
 
 def check_solid(model, mesh_vol: float) -> None:
-    assert occ.is_valid(model.shape)
-    assert occ.free_edge_count(model.shape) == 0
+    assert brep.is_valid(model.shape)
+    assert brep.free_edge_count(model.shape) == 0
     assert [name for name, _ in model.face_names] == list(FACE_NAMES)
     assert model.faces == 5
     assert model.volume_mm3 > 0
@@ -101,7 +102,7 @@ def test_phantom_gives_one_valid_closed_solid(fill, ring_model, patch_model, pha
 
 def test_own_faces_point_outward(ring_model):
     # every face bonecad parametrises itself keeps its natural orientation in the solid
-    assert not any(occ.face_is_reversed(face) for _, face in ring_model.face_names)
+    assert not any(brep.face_is_reversed(face) for _, face in ring_model.face_names)
     assert not any(s.reversed for s in ring_model.surfaces)
 
 
@@ -168,14 +169,14 @@ def test_step_and_iges_round_trip(ring_model, tmp_path):
         solids.append(explorer.Current())
         explorer.Next()
     assert len(solids) == 1
-    assert occ.is_valid(solids[0]) and occ.free_edge_count(solids[0]) == 0
-    assert len(occ.faces(solids[0])) == 5
-    assert occ.volume_mm3(solids[0]) == pytest.approx(ring_model.volume_mm3, rel=1e-5)
+    assert brep.is_valid(solids[0]) and brep.free_edge_count(solids[0]) == 0
+    assert len(brep.faces(solids[0])) == 5
+    assert brep.volume_mm3(solids[0]) == pytest.approx(ring_model.volume_mm3, rel=1e-5)
 
     iges = IGESControl_Reader()
     assert iges.ReadFile(str(paths["iges"])) == IFSelect_RetDone
     iges.TransferRoots()
-    assert len(occ.faces(iges.OneShape())) == 5
+    assert len(brep.faces(iges.OneShape())) == 5
     assert "distal_apex_cap" in paths["iges"].read_text().replace("\n", "")
 
 

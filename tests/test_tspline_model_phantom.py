@@ -68,7 +68,7 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
     from OCP.TopAbs import TopAbs_SOLID
 
     from bonecad.analysis import TessellationSettings, shape_deviation
-    from bonecad.tspline.occ import is_valid
+    from bonecad.io.brep import is_valid
 
     shape = model.shape
     assert shape.ShapeType() == TopAbs_SOLID and is_valid(shape)
@@ -90,7 +90,7 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
 
 def test_write_tspline_round_trips(model, tmp_path):
     from bonecad.io.cad import read_step
-    from bonecad.tspline.occ import is_valid
+    from bonecad.io.brep import is_valid
 
     paths = write_tspline(model, tmp_path)
     assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json"}
@@ -98,6 +98,13 @@ def test_write_tspline_round_trips(model, tmp_path):
     solids = back.solids()
     assert len(solids) == 1 and is_valid(solids[0].wrapped)
     assert abs(solids[0].volume - model_volume(model)) < 1e-3 * model_volume(model)
+    # every face is named by its region in the file (STEP entity names)
+    text = paths["step"].read_text()
+    names = [name for name, _ in model.face_names]
+    assert set(names) == {"distal", "shaft", "proximal", "distal_apex_cap", "proximal_apex_cap"}
+    assert len(names) == len(solids[0].faces())
+    for name in set(names):
+        assert text.count(f"ADVANCED_FACE('{name}'") == names.count(name)
     doc = json.loads(paths["json"].read_text())
     assert doc["summary"]["control_points"] == model.control_points
     tube = load_tube(paths["json"])
@@ -153,7 +160,7 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
         assert np.abs(got - want).max() < 1e-6
     # and enclose the volume of the one-face-per-element solid
     volumes = []
-    for shape in (model.shape, _occ_shape(patches, model.frame, merge=False)):
+    for shape in (model.shape, _occ_shape(model.tspline, model.caps, model.parameterisation, model.frame, merge=False)[0]):
         props = GProp_GProps()
         BRepGProp.VolumeProperties_s(shape, props, 1e-8)
         volumes.append(props.Mass())

@@ -65,6 +65,8 @@ class SeamContinuity:
     length_mm : (E,)
     gap_mm, angle_deg, curvature_jump : (E, S) per sample
     classes : (E,) str, worst class along the edge
+    face_names : the name of every face (``shape_faces`` order) when the model
+        names them; the summary then counts the classes per pair of face names
     """
 
     faces: np.ndarray
@@ -74,13 +76,26 @@ class SeamContinuity:
     curvature_jump: np.ndarray
     classes: np.ndarray
     tolerances: ContinuityTolerances
+    face_names: tuple[str, ...] | None = None
+
+    def pair_names(self) -> list[str]:
+        """'a|b' (sorted) for every edge: the names of its two faces."""
+        if self.face_names is None:
+            raise InputError("the faces of this shape have no names")
+        return ["|".join(sorted((self.face_names[a], self.face_names[b]))) for a, b in self.faces]
 
     def summary(self) -> dict:
         counts = {name: int(np.sum(self.classes == name)) for name in CLASSES}
         worst = next((name for name in CLASSES if counts[name]), "G2") if len(self.classes) else "none"
+        by_pair = None
+        if self.face_names is not None:
+            pairs = np.array(self.pair_names(), dtype=object)
+            by_pair = {p: {name: int(np.sum((pairs == p) & (self.classes == name))) for name in CLASSES}
+                       for p in sorted(set(pairs.tolist()))}
         return {
             "edges": int(len(self.classes)),
             "class_counts": counts,
+            "class_counts_by_face_pair": by_pair,
             "worst_class": worst,
             "max_gap_mm": float(self.gap_mm.max()) if self.gap_mm.size else 0.0,
             "max_angle_deg": float(self.angle_deg.max()) if self.angle_deg.size else 0.0,
@@ -99,6 +114,8 @@ class SeamContinuity:
             "edges": [
                 {
                     "faces": self.faces[i].tolist(),
+                    **({} if self.face_names is None else
+                       {"face_names": [self.face_names[k] for k in self.faces[i]]}),
                     "length_mm": float(self.length_mm[i]),
                     "max_gap_mm": float(self.gap_mm[i].max()),
                     "max_angle_deg": float(self.angle_deg[i].max()),
@@ -243,7 +260,8 @@ def _face_surfaces(faces, tessellation) -> tuple:
 
 
 def seam_continuity(
-    shape, *, samples: int = 21, tolerances: ContinuityTolerances | None = None, tessellation=None
+    shape, *, samples: int = 21, tolerances: ContinuityTolerances | None = None, tessellation=None,
+    face_names: list[tuple[str, object]] | None = None,
 ) -> SeamContinuity:
     """G0/G1/G2 measures along every edge of ``shape`` shared by two different faces.
 
@@ -252,6 +270,7 @@ def seam_continuity(
     are evaluated in one batch (``nurbs_eval.SurfaceSet``, second derivatives
     included); ``tessellation``, a :class:`~.tessellation.Tessellation` of
     ``shape``, lends its surfaces (else they are read from the faces).
+    face_names : (name, TopoDS_Face) of every face, as the model stage names them.
     """
     from OCP.BRep import BRep_Tool
     from OCP.BRepAdaptor import BRepAdaptor_Curve
@@ -265,6 +284,7 @@ def seam_continuity(
     if samples < 2:
         raise InputError(f"samples must be >= 2, got {samples}")
     faces = shape_faces(shape)
+    names = None if face_names is None else tuple(_names_in_order(faces, face_names))
     edge_map = TopTools_IndexedMapOfShape()
     TopExp.MapShapes_s(shape, TopAbs_EDGE, edge_map)
     # edge -> the faces holding it, each with the edge as that face holds it (first occurrence:
@@ -297,7 +317,8 @@ def seam_continuity(
         lengths.append(GCPnts_AbscissaPoint.Length_s(curve))
     if not pairs:
         empty = np.zeros((0, samples))
-        return SeamContinuity(np.zeros((0, 2), int), np.zeros(0), empty, empty, empty, np.zeros(0, dtype=object), tol)
+        return SeamContinuity(np.zeros((0, 2), int), np.zeros(0), empty, empty, empty, np.zeros(0, dtype=object), tol,
+                              names)
     face_of = np.concatenate(sample_face)
     uv = np.concatenate(sample_uv)
     duv = np.concatenate(sample_duv)
@@ -340,7 +361,19 @@ def seam_continuity(
         curvature_jump=jump,
         classes=classes,
         tolerances=tol,
+        face_names=names,
     )
+
+
+def _names_in_order(faces: list, face_names: list[tuple[str, object]]) -> list[str]:
+    """The name of each of ``faces`` from (name, face) pairs (matched by TopoDS IsSame)."""
+    out = []
+    for face in faces:
+        matches = [name for name, f in face_names if f.IsSame(face)]
+        if len(matches) != 1:
+            raise InputError(f"a face of the shape matches {len(matches)} of the named faces")
+        out.append(matches[0])
+    return out
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

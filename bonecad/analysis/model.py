@@ -45,11 +45,14 @@ def analyse_model(
     *,
     info: dict,
     sample_points: int | None = None,
+    face_names: list[tuple[str, object]] | None = None,
     jobs: JobGroup | None = None,
 ) -> ModelReport:
     """Deviation, continuity and figures (``{name}_deviation.png``, ``{name}_histogram.png``,
     ``{name}_zebra.png``) of ``shape`` (a TopoDS_Shape in scanner mm) against ``bone``.
 
+    face_names : (name, TopoDS_Face) of the faces, as the model names them:
+    the continuity is then also counted per pair of face names.
     jobs : a group of background jobs (``bonecad.parallel``): the zebra figure
     and the continuity are then made on the second core while the deviation is
     measured here; None: all in this process.
@@ -58,7 +61,8 @@ def analyse_model(
     tess = tessellate(shape)
     zebra_path = out_dir / f"{name}_zebra.png"
     title = f"{name}: zebra (reflection lines)"
-    side = None if jobs is None else jobs.start(_zebra_and_continuity, shape, tess, zebra_path, view_frame, title)
+    args = (shape, tess, zebra_path, view_frame, title, face_names)
+    side = None if jobs is None else jobs.start(_zebra_and_continuity, *args)
     deviation = shape_deviation(
         bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=sample_points, tessellation=tess
     )
@@ -74,9 +78,7 @@ def analyse_model(
             title=f"{name}: share of surface per deviation band",
         ),
     }
-    zebra, continuity, knots = (
-        _zebra_and_continuity(shape, tess, zebra_path, view_frame, title) if side is None else side.result()[0]
-    )
+    zebra, continuity, knots = _zebra_and_continuity(*args) if side is None else side.result()[0]
     figures["zebra"] = zebra
     stats = deviation.mesh_to_cad.stats
     log.info("%s: RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", name, stats.rms_mm, stats.max_outside_mm,
@@ -84,7 +86,7 @@ def analyse_model(
     return ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots, figures=figures)
 
 
-def _zebra_and_continuity(shape, tess, path: Path, view_frame: np.ndarray, title: str):
+def _zebra_and_continuity(shape, tess, path: Path, view_frame: np.ndarray, title: str, face_names):
     """The zebra figure, the seam continuity and the knot continuity of a tessellated shape."""
-    return (zebra_png(path, tess, view_frame, title=title), seam_continuity(shape, tessellation=tess),
-            knot_continuity(shape))
+    return (zebra_png(path, tess, view_frame, title=title),
+            seam_continuity(shape, tessellation=tess, face_names=face_names), knot_continuity(shape))

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.output import staged_file
-from .continuity import KnotContinuity, SeamContinuity
+from .continuity import CLASSES, KnotContinuity, SeamContinuity
 from .deviation import DeviationResult
 
 SCHEMA = "bonecad.report/1"
@@ -64,6 +64,15 @@ class ModelReport:
     continuity: SeamContinuity | None = None
     knots: list[KnotContinuity] | None = None
     figures: dict[str, Path] = field(default_factory=dict)
+
+
+def _worst_away_from_caps(continuity: SeamContinuity | None) -> str | None:
+    """The worst seam class among seams that touch no apex cap face (None without names)."""
+    if continuity is None or continuity.face_names is None:
+        return None
+    away = np.array(["apex_cap" not in pair for pair in continuity.pair_names()], dtype=bool)
+    classes = set(continuity.classes[away].tolist())
+    return next((name for name in CLASSES if name in classes), "G2") if away.any() else "none"
 
 
 def _plain(value):
@@ -104,6 +113,12 @@ def comparison_rows(models: list[ModelReport]) -> list[dict[str, Any]] | None:
                 n: (by_name[n].continuity.summary()["worst_class"] if by_name[n].continuity else None)
                 for n in ("nurbs", "tspline")
             },
+        }
+    )
+    rows.append(
+        {
+            "quantity": "continuity class (worst seam away from the apex caps)",
+            **{n: _worst_away_from_caps(by_name[n].continuity) for n in ("nurbs", "tspline")},
         }
     )
     for limit in WITHIN_MM:

@@ -19,6 +19,7 @@ import numpy as np
 from ..config import load_config
 from ..curves.contours import ContourSet
 from ..errors import InputError, KernelError
+from ..io import brep
 from . import occ
 from .loft import BoneSurfaces, RefitReport, bone_surfaces, ring_cap
 from .surface import BSplineSurface
@@ -151,15 +152,8 @@ def build_nurbs(contours: ContourSet, *, apex_fill: ApexFill | None = None, conf
     timings["faces"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    shell, sewn = occ.sew(named, tolerance_mm=tolerance)
-    solid = occ.solid_from_shell(shell)
-    face_names = []
-    for face in occ.faces(solid):
-        matches = [name for name, f in sewn if f.IsSame(face)]
-        if len(matches) != 1:
-            raise KernelError(f"a face of the solid matches {len(matches)} of the sewn faces")
-        face_names.append((matches[0], face))
-    reversed_ = {name: occ.face_is_reversed(f) for name, f in face_names}
+    solid, face_names = brep.named_solid(named, tolerance_mm=tolerance)
+    reversed_ = {name: brep.face_is_reversed(f) for name, f in face_names}
     final = []
     for s in scanner:
         if reversed_[s.region]:
@@ -173,15 +167,15 @@ def build_nurbs(contours: ContourSet, *, apex_fill: ApexFill | None = None, conf
     timings["sew"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    if not occ.is_valid(solid):
+    if not brep.is_valid(solid):
         raise KernelError("the sewn NURBS solid is not valid (BRepCheck_Analyzer)")
-    free = occ.free_edge_count(solid)
+    free = brep.free_edge_count(solid)
     if free:
         raise KernelError(f"the sewn NURBS solid has {free} free edges")
-    volume = occ.volume_mm3(solid)
+    volume = brep.volume_mm3(solid)
     if not volume > 0:
         raise KernelError(f"the NURBS solid has volume {volume:.1f} mm^3: it is inside out")
-    area = occ.area_mm2(solid)
+    area = brep.area_mm2(solid)
     timings["check"] = time.perf_counter() - start
     return NurbsModel(
         surfaces=tuple(final),
@@ -215,6 +209,6 @@ def write_nurbs(model: NurbsModel, out_dir: str | Path) -> dict[str, Path]:
     out_dir = Path(out_dir)
     names = list(model.face_names)
     return {
-        "step": occ.write_named_step(model.shape, out_dir / "nurbs.step", "nurbs", names),
-        "iges": occ.write_named_iges(model.shape, out_dir / "nurbs.iges", "nurbs", names),
+        "step": brep.write_named_step(model.shape, out_dir / "nurbs.step", "nurbs", names),
+        "iges": brep.write_named_iges(model.shape, out_dir / "nurbs.iges", "nurbs", names),
     }

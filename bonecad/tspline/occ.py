@@ -15,16 +15,15 @@
 from __future__ import annotations
 
 import numpy as np
-from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_Sewing
-from OCP.BRepCheck import BRepCheck_Analyzer
+from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace
 from OCP.Geom import Geom_BezierSurface, Geom_BSplineSurface
 from OCP.gp import gp_Pnt
 from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array1OfInteger, TColStd_Array1OfReal, TColStd_Array2OfReal
-from OCP.TopAbs import TopAbs_SHELL
 from OCP.TopoDS import TopoDS_Face, TopoDS_Shape
 
 from bonecad.errors import InputError, KernelError
+from bonecad.io.brep import sew
 from bonecad.tspline.tspline import TSpline
 
 #: Largest relative weight spread still written as a polynomial Bezier patch.
@@ -84,36 +83,9 @@ def bezier_faces(ts: TSpline, *, tolerance_mm: float = 1e-7) -> list[TopoDS_Face
     return faces
 
 
-def sew(faces: list[TopoDS_Face], *, tolerance_mm: float = 1e-6) -> TopoDS_Shape:
-    """Sew faces into one shell (BRepBuilderAPI_Sewing, edges cut at T-junctions).
-
-    Raises KernelError when the result is not a single valid shell.
-    """
-    if not faces:
-        raise InputError("sew: no faces given")
-    sewing = BRepBuilderAPI_Sewing(tolerance_mm, True, True, True, False)
-    for f in faces:
-        sewing.Add(f)
-    sewing.Perform()
-    shape = sewing.SewedShape()
-    if shape.IsNull():
-        raise KernelError("OpenCascade sewing returned no shape")
-    if shape.ShapeType() != TopAbs_SHELL:
-        raise KernelError(
-            f"sewing {len(faces)} faces gave a {shape.ShapeType()} instead of one shell "
-            f"({sewing.NbFreeEdges()} free edges, {sewing.NbMultipleEdges()} multiple edges)"
-        )
-    return shape
-
-
 def to_shell(ts: TSpline, *, tolerance_mm: float = 1e-6) -> TopoDS_Shape:
-    """The T-spline as one sewn shell of Bezier faces."""
-    return sew(bezier_faces(ts, tolerance_mm=0.1 * tolerance_mm), tolerance_mm=tolerance_mm)
-
-
-def is_valid(shape: TopoDS_Shape) -> bool:
-    """BRepCheck_Analyzer's verdict on a shape."""
-    return bool(BRepCheck_Analyzer(shape).IsValid())
+    """The T-spline as one sewn shell of Bezier faces (open where the T-spline has boundaries)."""
+    return sew(bezier_faces(ts, tolerance_mm=0.1 * tolerance_mm), tolerance_mm=tolerance_mm, closed=False)[0]
 
 
 def bspline_surface(ts: TSpline) -> Geom_BSplineSurface:
@@ -325,13 +297,14 @@ def merged_surfaces(ts: TSpline, *, tolerance_mm: float = 1e-7) -> list[tuple[ob
     return out
 
 
-def merged_faces(ts: TSpline, *, tolerance_mm: float = 1e-7) -> list[TopoDS_Face]:
-    """One face per tensor-product block of Bezier elements (natural bounds of its surface)."""
+def merged_faces(ts: TSpline, *, tolerance_mm: float = 1e-7) -> list[tuple[TopoDS_Face, np.ndarray]]:
+    """One face per tensor-product block of Bezier elements (natural bounds of its surface),
+    with the block's element indices."""
     faces = []
     for surf, block in merged_surfaces(ts, tolerance_mm=tolerance_mm):
         maker = BRepBuilderAPI_MakeFace(surf, tolerance_mm)
         if not maker.IsDone():
             raise KernelError(f"OpenCascade could not make a face of a block of {block.size} Bezier elements "
                               f"(error {maker.Error()})")
-        faces.append(maker.Face())
+        faces.append((maker.Face(), block))
     return faces

@@ -28,7 +28,7 @@ import numpy as np
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.config import load_config
 from bonecad.curves.contours import ContourSet, bone_coordinates
-from bonecad.errors import FitError, KernelError
+from bonecad.errors import KernelError
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.tspline import TSpline, to_dict
 
@@ -52,7 +52,9 @@ class TSplineModel:
         B-spline fitted to the same tolerance (None when not computed);
         tensor_product_converged : whether that fit met the tolerances.
     fit : the adaptive fit (final stats, history, why it stopped).
-    shape : OCP TopoDS_Shape (closed solid), scanner coordinates.
+    shape : OCP TopoDS_Shape (closed solid), scanner coordinates; face_names :
+        (name, TopoDS_Face) of every face of it ("distal", "shaft", "proximal",
+        "distal_apex_cap", "proximal_apex_cap").
     """
 
     tspline: TSpline
@@ -64,6 +66,7 @@ class TSplineModel:
     tensor_product_converged: bool | None
     tensor_product_fit: FitResult | None
     shape: object
+    face_names: tuple[tuple[str, object], ...]
     frame: AnatomicalFrame
     timings_s: dict[str, float] = field(default_factory=dict)
 
@@ -258,7 +261,7 @@ def build_tspline_model(
     )
     timings["caps"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    shape = _occ_shape([tube, caps[0].tspline, caps[1].tspline], frame)
+    shape, face_names = _occ_shape(tube, caps, par, frame)
     timings["occ"] = time.perf_counter() - clock
     return TSplineModel(
         tspline=tube,
@@ -270,6 +273,7 @@ def build_tspline_model(
         tensor_product_converged=None if tp_fit is None else tp_fit.converged,
         tensor_product_fit=tp_fit,
         shape=shape,
+        face_names=tuple(face_names),
         frame=frame,
         timings_s=timings,
     )
@@ -280,60 +284,60 @@ def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
     return TSpline(ts.mesh, frame.to_scanner(ts.control_points), ts.weights)
 
 
-def _occ_shape(patches: list[TSpline], frame: AnatomicalFrame, *, merge: bool = True):
-    """Faces of all patches (scanner coordinates), sewn into a closed solid with outward faces.
+def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: AnatomicalFrame, *,
+               merge: bool = True) -> tuple[object, list[tuple[str, object]]]:
+    """The tube's and the caps' faces (scanner coordinates), sewn into a closed, valid solid with outward faces.
 
     merge : one B-spline face per tensor-product block of Bezier elements
     (exactly the same surface, far fewer faces: DESIGN.md's lean STEP files);
-    False: one Bezier face per element.
+    False: one Bezier face per element. Tube faces are named by the region
+    ("distal", "shaft", "proximal") that holds the middle of their t-range, cap
+    faces "distal_apex_cap" / "proximal_apex_cap". Returns (solid, [(name, face)]).
     """
-    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid
-    from OCP.BRepClass3d import BRepClass3d_SolidClassifier
-    from OCP.TopAbs import TopAbs_IN
-    from OCP.TopoDS import TopoDS
+    from bonecad.io.brep import is_valid, named_solid
+    from bonecad.tspline.occ import bezier_faces, merged_faces
 
-    from bonecad.tspline.occ import bezier_faces, is_valid, merged_faces, sew
+    def faces_of(ts: TSpline) -> tuple[list, np.ndarray]:
+        """Faces of a patch and the t in the middle of each (parameters of ``ts``)."""
+        ext = ts.extraction
+        scanner = to_scanner(ts, frame)
+        if merge:
+            pairs = merged_faces(scanner)
+            return [f for f, _ in pairs], np.array([ext.t_bounds[b].mean() for _, b in pairs])
+        return bezier_faces(scanner), ext.t_bounds.mean(axis=1)
 
-    make_faces = merged_faces if merge else bezier_faces
-    faces = []
-    for ts in patches:
-        faces.extend(make_faces(to_scanner(ts, frame)))
+    faces, t_mid = faces_of(tube)
+    regions = np.where(t_mid < par.t_distal, "distal", np.where(t_mid > par.t_proximal, "proximal", "shaft"))
+    named = list(zip(regions.tolist(), faces))
+    for cap in caps:
+        named.extend((f"{cap.end}_apex_cap", face) for face in faces_of(cap.tspline)[0])
     # Neighbouring Bezier edges agree to rounding; a T-junction lying a few
     # micrometres from an element corner can still leave a pair unsewn at the
     # finest tolerance, so widen it (up to 10 um) until the solid closes.
+    problems = []
     for tol in _SEWING_TOLERANCES_MM:
-        shell = sew(faces, tolerance_mm=tol)
-        maker = BRepBuilderAPI_MakeSolid(TopoDS.Shell_s(shell))
-        if not maker.IsDone():
+        try:
+            solid, face_names = named_solid(named, tolerance_mm=tol)
+        except KernelError as exc:
+            problems.append(f"{tol} mm: {exc}")
             continue
-        solid = maker.Solid()
         if is_valid(solid):
-            break
-    else:
-        raise KernelError(f"the T-spline faces ({len(faces)}) do not sew into a valid closed solid "
-                          f"(tolerances up to {_SEWING_TOLERANCES_MM[-1]} mm)")
-    # a reversed solid holds the point at infinity (ray classification: a
-    # fraction of the time of a volume integral just for its sign)
-    classifier = BRepClass3d_SolidClassifier(solid)
-    classifier.PerformInfinitePoint(_SEWING_TOLERANCES_MM[0])
-    if classifier.State() == TopAbs_IN:
-        solid.Reverse()
-    return solid
+            return solid, face_names
+        problems.append(f"{tol} mm: not valid (BRepCheck_Analyzer)")
+    raise KernelError(f"the T-spline faces ({len(named)}) do not sew into a valid closed solid: " + "; ".join(problems))
 
 
 def write_tspline(model: TSplineModel, out_dir: str | Path) -> dict[str, Path]:
-    """Write tspline.step, tspline.iges and tspline.json (scanner coordinates, mm) into ``out_dir``."""
-    from build123d import Solid
-
-    from bonecad.io.cad import write_iges, write_step
+    """Write tspline.step, tspline.iges (the solid named "tspline", faces by region) and
+    tspline.json (scanner coordinates, mm) into ``out_dir``."""
+    from bonecad.io.brep import write_named_iges, write_named_step
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    solid = Solid(model.shape)
-    solid.label = "tibia_tspline"
+    names = list(model.face_names)
     paths = {
-        "step": write_step(solid, out / "tspline.step"),
-        "iges": write_iges(solid, out / "tspline.iges"),
+        "step": write_named_step(model.shape, out / "tspline.step", "tspline", names),
+        "iges": write_named_iges(model.shape, out / "tspline.iges", "tspline", names),
     }
     doc = {
         "format": "bonecad.tspline_model",
