@@ -241,46 +241,63 @@ def reconstruct_bone(
         else:
             with timings.stage("contour curves"):
                 result.contours = contour_curves(bone, frame, config=config)
-            curve_files = jobs.start(write_curves, result.contours, bone, stage_dir)
+            # the second core: curves.step/.iges/.png, then the NURBS model, its files and analysis
+            side = jobs.start(_curve_files_and_nurbs, result.contours, bone, stage_dir,
+                              nurbs=until == "models" and "nurbs" in models, apex_fill=apex_fill, config=config)
             write_json(contours_dict(result.contours), stage_dir / "curves.json")
             for name, summary in result.contours.summary().items():
                 log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name,
                          summary["curves"], summary["worst_max_deviation_mm"], summary["tolerance_mm"],
                          summary["within_tolerance"])
-        if until == "models":
-            _build_models(result, stage_dir, models, apex_fill, compare_tensor_product, config, timings, jobs)
-        if until != "frame":
-            timings["curves to STEP, IGES and PNG"] = round(curve_files.result()[1], 3)
+            if until == "models":
+                _build_models(result, stage_dir, models, compare_tensor_product, config, timings, jobs, side)
+            else:
+                timings.update(side.result()[0]["timings"])
         write_json({"input": mesh_summary(bone), **frame.as_dict(), "timings_s": dict(timings)}, stage_dir / "frame.json")
         result.files = sorted(p.name for p in stage_dir.iterdir())
     result.timings_s = dict(timings)
     return result
 
 
-def _build_models(
-    result: Reconstruction, stage_dir: Path, models, apex_fill, compare_tensor_product, config, timings: Timings,
-    jobs: parallel.JobGroup,
-) -> None:
-    """Each requested model, its exports and analysis, then report.json/report.html.
+def _curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path, *, nurbs: bool, apex_fill,
+                           config: dict) -> dict:
+    """curves.step, curves.iges, curves.png, then (``nurbs``) the NURBS model, its files and its analysis.
 
-    The NURBS model's analysis runs on the second core (``bonecad.parallel``)
-    while the T-spline model is built (its time is the child's own), and the
-    T-spline model's zebra figure and continuity while its deviation is measured.
+    Returns {"timings": {stage: s}, "model": NurbsModel, "report": ModelReport} (picklable: it runs as
+    a background job).
+    """
+    timings = Timings()
+    with timings.stage("curves to STEP, IGES and PNG"):
+        write_curves(contours, bone, stage_dir)
+    out: dict = {"timings": timings}
+    if nurbs:
+        from .analysis.model import analyse_model
+        from .nurbs.model import build_nurbs, write_nurbs
+
+        with timings.stage("NURBS model"):
+            model = build_nurbs(contours, apex_fill=apex_fill, config=config)
+            write_nurbs(model, stage_dir)
+        with timings.stage("NURBS analysis"):
+            out["report"] = analyse_model("nurbs", model.shape, bone, contours.frame, stage_dir,
+                                          info=model.summary(), face_names=list(model.face_names))
+        out["model"] = model
+    return out
+
+
+def _build_models(
+    result: Reconstruction, stage_dir: Path, models, compare_tensor_product, config, timings: Timings,
+    jobs: parallel.JobGroup, side: parallel.Job,
+) -> None:
+    """The T-spline model, its exports and analysis, beside the ``side`` job (curve files and the
+    NURBS model, on the second core: ``bonecad.parallel``), then report.json/report.html.
+
+    The T-spline model's zebra figure and continuity are made on the second core
+    while its deviation is measured. Stage times of the side job are its own.
     """
     from .analysis.model import analyse_model
     from .analysis.report import write_report
 
     bone, frame, contours = result.bone, result.frame, result.contours
-    analyses = {}
-    if "nurbs" in models:
-        from .nurbs.model import build_nurbs, write_nurbs
-
-        with timings.stage("NURBS model"):
-            nurbs = build_nurbs(contours, apex_fill=apex_fill, config=config)
-            write_nurbs(nurbs, stage_dir)
-        result.models["nurbs"] = nurbs
-        analyses["nurbs"] = jobs.start(analyse_model, "nurbs", nurbs.shape, bone, frame, stage_dir,
-                                       info=nurbs.summary(), face_names=list(nurbs.face_names))
     if "tspline" in models:
         from .tspline_model.model import build_tspline_model, write_tspline
 
@@ -295,10 +312,11 @@ def _build_models(
                 info={"faces": len(tspline.face_names), **tspline.summary()},
                 face_names=list(tspline.face_names), jobs=jobs,
             )
-    if "nurbs" in analyses:
-        with timings.stage("waiting for the NURBS analysis"):
-            result.reports["nurbs"], seconds = analyses["nurbs"].result()
-        timings["NURBS analysis"] = round(seconds, 3)
+    with timings.stage("waiting for the second core"):
+        done = side.result()[0]
+    timings.update(done["timings"])
+    if "nurbs" in models:
+        result.models["nurbs"], result.reports["nurbs"] = done["model"], done["report"]
     with timings.stage("report"):
         write_report(
             stage_dir,

@@ -216,3 +216,17 @@ def test_real_mesh_gives_a_valid_closed_solid(path):
     frame = bonecad.anatomical_frame(bone)
     model = build_nurbs(contour_curves(bone, frame))
     check_solid(model, mesh_volume(bone.vertices, bone.faces))
+
+
+def test_model_pickles_with_its_solid_and_face_names(ring_model):
+    """A model handed between processes (bonecad.parallel) keeps its exact solid and names."""
+    import json
+    import pickle
+
+    back = pickle.loads(pickle.dumps(ring_model))
+    assert [n for n, _ in back.face_names] == [n for n, _ in ring_model.face_names]
+    assert brep.is_valid(back.shape) and brep.free_edge_count(back.shape) == 0
+    assert brep.volume_mm3(back.shape) == pytest.approx(brep.volume_mm3(ring_model.shape), rel=1e-12)
+    for (name, a), (_, b) in zip(ring_model.face_names, back.face_names):
+        assert brep.area_mm2(a) == pytest.approx(brep.area_mm2(b), rel=1e-12), name
+    assert json.dumps(back.summary()) == json.dumps(ring_model.summary())  # NaN-safe

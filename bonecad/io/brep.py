@@ -8,6 +8,7 @@ and every face named (STEP entity names, XCAF sub-shape names).
 """
 from __future__ import annotations
 
+import io
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -214,3 +215,43 @@ def write_named_iges(shape: TopoDS_Shape, path: str | Path, name: str, face_name
         if not writer.Write(str(tmp)):
             raise KernelError(f"OpenCascade could not write IGES file {path}")
     return path
+
+
+def shape_to_bytes(shape: TopoDS_Shape) -> bytes:
+    """OpenCascade's binary B-rep of ``shape`` (exact: geometry, topology and tolerances)."""
+    from OCP.BinTools import BinTools
+
+    buffer = io.BytesIO()
+    BinTools.Write_s(shape, buffer)
+    return buffer.getvalue()
+
+
+def shape_from_bytes(data: bytes) -> TopoDS_Shape:
+    """The shape of ``shape_to_bytes``; its sub-shapes come in the same explorer order."""
+    from OCP.BinTools import BinTools
+
+    shape = TopoDS_Shape()
+    BinTools.Read_s(shape, io.BytesIO(data))
+    if shape.IsNull():
+        raise KernelError("OpenCascade read no shape from the binary B-rep")
+    return shape
+
+
+def pickle_named_shape(shape: TopoDS_Shape, face_names) -> tuple[bytes, list[str]]:
+    """A picklable form of a shape and its (name, face) pairs (names in explorer order)."""
+    names = []
+    for face in faces(shape):
+        matches = [name for name, f in face_names if f.IsSame(face)]
+        if len(matches) != 1:
+            raise KernelError(f"a face of the shape matches {len(matches)} of the named faces")
+        names.append(matches[0])
+    return shape_to_bytes(shape), names
+
+
+def unpickle_named_shape(data: bytes, names: list[str]) -> tuple[TopoDS_Shape, tuple[tuple[str, TopoDS_Face], ...]]:
+    """The shape and its (name, face) pairs back from ``pickle_named_shape``."""
+    shape = shape_from_bytes(data)
+    shape_faces = faces(shape)
+    if len(shape_faces) != len(names):
+        raise KernelError(f"the binary B-rep has {len(shape_faces)} faces, not {len(names)}")
+    return shape, tuple(zip(names, shape_faces))

@@ -77,6 +77,18 @@ class NurbsModel:
 
         return Solid(self.shape)
 
+    def __getstate__(self) -> dict:
+        """Picklable (to hand the model between processes): the solid as OpenCascade's binary B-rep."""
+        state = dict(self.__dict__)
+        state["shape"], state["face_names"] = brep.pickle_named_shape(self.shape, self.face_names)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        state = dict(state)
+        state["shape"], state["face_names"] = brep.unpickle_named_shape(state["shape"], state["face_names"])
+        for key, value in state.items():
+            object.__setattr__(self, key, value)
+
     def surface(self, region: str) -> BSplineSurface:
         for s in self.surfaces:
             if s.region == region:
