@@ -240,7 +240,7 @@ def reconstruct_bone(
                 write_step(compound(frame_shapes(frame), "reference_entities"), stage_dir / "curves.step")
         else:
             with timings.stage("contour curves"):
-                result.contours = contour_curves(bone, frame, config=config)
+                result.contours = contour_curves(bone, frame, config=config, jobs=jobs)
             # the second core: curves.step/.iges/.png, then the NURBS model, its files and analysis
             side = jobs.start(_curve_files_and_nurbs, result.contours, bone, stage_dir,
                               nurbs=until == "models" and "nurbs" in models, apex_fill=apex_fill, config=config)

@@ -55,7 +55,8 @@ def analyse_model(
     the continuity is then also counted per pair of face names.
     jobs : a group of background jobs (``bonecad.parallel``): the zebra figure
     and the continuity are then made on the second core while the deviation is
-    measured here; None: all in this process.
+    measured here, and the colour map while the histogram is drawn; None: all
+    in this process.
     """
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     tess = tessellate(shape)
@@ -66,20 +67,18 @@ def analyse_model(
     deviation = shape_deviation(
         bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=sample_points, tessellation=tess
     )
-    figures = {
-        "deviation": deviation_map_png(
-            out_dir / f"{name}_deviation.png", bone.vertices, bone.faces, deviation.vertex_deviation_mm, view_frame,
-            title=f"{name}: deviation of the mesh from the CAD model, mm",
-        ),
-        "histogram": histogram_png(
-            out_dir / f"{name}_histogram.png",
-            {"whole bone": deviation.mesh_to_cad.histogram,
-             **deviation.mesh_to_cad.region_histograms},
-            title=f"{name}: share of surface per deviation band",
-        ),
-    }
+    map_args = (out_dir / f"{name}_deviation.png", bone.vertices, bone.faces, deviation.vertex_deviation_mm,
+                view_frame)
+    map_title = f"{name}: deviation of the mesh from the CAD model, mm"
+    map_job = None if jobs is None else jobs.start(deviation_map_png, *map_args, title=map_title)
+    histogram = histogram_png(
+        out_dir / f"{name}_histogram.png",
+        {"whole bone": deviation.mesh_to_cad.histogram, **deviation.mesh_to_cad.region_histograms},
+        title=f"{name}: share of surface per deviation band",
+    )
+    colour_map = deviation_map_png(*map_args, title=map_title) if map_job is None else map_job.result()[0]
     zebra, continuity, knots = _zebra_and_continuity(*args) if side is None else side.result()[0]
-    figures["zebra"] = zebra
+    figures = {"deviation": colour_map, "histogram": histogram, "zebra": zebra}
     stats = deviation.mesh_to_cad.stats
     log.info("%s: RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", name, stats.rms_mm, stats.max_outside_mm,
              stats.max_inside_mm)

@@ -25,6 +25,7 @@ from ..config import load_config
 from ..errors import FitError
 from ..mesh.bone_mesh import BoneMesh
 from ..mesh.sections import LevelSections, section_mesh
+from ..parallel import JobGroup
 from .bspline import BSplineCurve, fit_curve
 
 REGIONS = ("distal", "shaft", "proximal")
@@ -257,8 +258,13 @@ def choose_shaft_levels(
     return fine[idx], p99, worst
 
 
-def contour_curves(bone: BoneMesh, frame: AnatomicalFrame, *, config: dict | None = None) -> ContourSet:
-    """Section the bone and rebuild every contour curve as a cubic B-spline (bone coordinates)."""
+def contour_curves(bone: BoneMesh, frame: AnatomicalFrame, *, config: dict | None = None,
+                   jobs: JobGroup | None = None) -> ContourSet:
+    """Section the bone and rebuild every contour curve as a cubic B-spline (bone coordinates).
+
+    jobs : a group of background jobs (``bonecad.parallel``): the proximal curves
+    are then fitted on the second core while the distal and shaft curves are fitted here.
+    """
     config = config or load_config()
     cc = config["curves"]
     degree = int(cc["degree"])
@@ -284,10 +290,11 @@ def contour_curves(bone: BoneMesh, frame: AnatomicalFrame, *, config: dict | Non
                                        fit.rms_deviation_mm, angle_deg=float(angle), repairs=tuple(notes)))
         return tuple(curves)
 
+    proximal_args = ("proximal", cc["proximal_angles_deg"], local_bone[0], local_dir, z_p, +1,
+                     int(cc["proximal_control_points"]), float(cc["proximal_tolerance_mm"]))
+    proximal_job = None if jobs is None else jobs.start(open_curves, *proximal_args)
     distal = open_curves("distal", cc["distal_angles_deg"], np.zeros(3), z_axis, z_d, -1,
                          int(cc["distal_control_points"]), float(cc["distal_tolerance_mm"]))
-    proximal = open_curves("proximal", cc["proximal_angles_deg"], local_bone[0], local_dir, z_p, +1,
-                           int(cc["proximal_control_points"]), float(cc["proximal_tolerance_mm"]))
 
     # Shaft sections start on the ray at angle 0 from a centre line that
     # runs from the mechanical axis (distal boundary) to the local axis
@@ -311,6 +318,7 @@ def contour_curves(bone: BoneMesh, frame: AnatomicalFrame, *, config: dict | Non
             notes.append(f"bridged {fit.outliers} outlying section point(s) (peaks from holes or artefacts)")
         shaft.append(ContourCurve("shaft", i, fit.curve, raw, shaft_tol, fit.max_deviation_mm,
                                   fit.rms_deviation_mm, level_mm=float(level), repairs=tuple(notes)))
+    proximal = open_curves(*proximal_args) if proximal_job is None else proximal_job.result()[0]
     notes = [
         f"{len(levels)} shaft sections: a cubic loft through them follows 99 % of the shaft within "
         f"{predicted:.3f} mm (worst {worst:.3f} mm) of its sections sampled every 2 mm"
