@@ -191,3 +191,32 @@ def test_one_way_split_of_one_element_adds_one_line_segment():
         assert r.added == count  # the two ends of the new segment, nothing else on a tensor grid
     with pytest.raises(InputError, match="axes"):
         refine_elements(ts, [e], np.ones((2, 2), dtype=bool))
+
+
+def test_neighbours_split_across_each_other_need_two_extra_control_points():
+    # an element halved in s next to one halved in t: the t-segment's face
+    # extension meets the s-segment's edge extensions; extending the s-segment's
+    # two ends one face each clears both (the t-segment would need two faces
+    # and still touch), so 4 requested + 2 control points, exact and suitable
+    ts = tube(40, 30, seed=4)
+    ib = ts.extraction.index_bounds
+    e = [int(np.flatnonzero((ib[:, 0] == i) & (ib[:, 2] == 15))[0]) for i in (20, 21)]
+    r = refine_elements(ts, e, np.array([[True, False], [False, True]]))
+    assert (r.requested_vertices, r.added) == (4, 6)
+    assert check_suitability(r.tspline.mesh).suitable
+    s, t = random_params(ts, 1000, np.random.default_rng(3))
+    assert np.abs(r.tspline.evaluate(s, t).points - ts.evaluate(s, t).points).max() < 1e-9 * size(ts)
+
+
+def test_crossing_a_point_on_a_perpendicular_edge_adds_one_side_only():
+    from bonecad.tspline.refine import _Edges
+
+    ts = tube(16, 12, seed=5)
+    mesh, k, _ = ts.mesh.with_line("s", 0.5 * (ts.mesh.s_lines[6] + ts.mesh.s_lines[7]), 1e-12)
+    edges = _Edges(mesh)
+    edges.cross_at(k, 8, "s")  # t-line 8 is complete: one face up or down suffices
+    assert edges.t_e[k].sum() == 1 and (edges.t_e[k, 7] or edges.t_e[k, 8])
+    mesh2, j, _ = mesh.with_line("t", 0.5 * (mesh.t_lines[8] + mesh.t_lines[9]), 1e-12)
+    edges = _Edges(mesh2)
+    edges.cross_at(k, j, "s")  # inside a face: the segment must cross it, from edge to edge
+    assert edges.t_e[k].sum() == 2 and edges.t_e[k, j - 1] and edges.t_e[k, j]

@@ -9,12 +9,15 @@ CMAME 213-216):
 1. insert the requested knot-line segments into the T-mesh (each end runs on
    to the nearest perpendicular edge, so the mesh stays valid);
 2. extend T-junctions whose extensions meet, one face at a time, until the
-   mesh is analysis-suitable;
+   mesh is analysis-suitable; of each meeting pair the junction extended is
+   the one whose step ends on a vertex (no new control point), else the one
+   met behind itself (one step clears it), else the one in more pairs;
 3. split every old blending function by Boehm knot insertion wherever the new
    mesh has a knot line crossing its s or t ray that the function lacks; the
    split-off pieces carry the old control points with the Boehm factors;
 4. where a piece's anchor or knot is not in the mesh, add the edge (the mesh
-   follows the function), and go back to 2.
+   follows the function; one-sided where the point lies on a perpendicular
+   edge already), and go back to 2.
 
 When every piece is exactly a blending function of the final mesh, the pieces
 that share an anchor are summed: new homogeneous control points = R @ old,
@@ -148,24 +151,76 @@ class _Edges:
             if b == self.s_n - END_LINES:
                 self.s_e[j, b:] = True
 
+    def _run_t(self, i: int, j: int, d: int) -> int:
+        """From grid point (i, j) along s-line i in direction d: the next t-line with an s-edge there."""
+        y = j + d
+        while not self._on_s(i, y):
+            y += d
+        return y
+
+    def _run_s(self, i: int, j: int, d: int) -> int:
+        """From grid point (i, j) along t-line j in direction d: the next (unwrapped) s-line with a t-edge there."""
+        x = i + d
+        for _ in range(self.s_n + 1):
+            if self._on_t(x, j):
+                break
+            x += d
+        return x
+
     def cross_at(self, i: int, j: int, axis: str) -> None:
-        """Make grid point (i, j) lie on a line of the given axis ("s": constant s)."""
+        """Make grid point (i, j) lie on a line of the given axis ("s": constant s).
+
+        Where the point already lies on a perpendicular edge, one edge from it
+        to the nearer perpendicular edge suffices (the side whose far end is
+        a vertex already first): one vertex fewer than a crossing.
+        """
         if axis == "s" and not self._on_t(i, j):
-            self.add_s_line(i, j - 1, j + 1)
+            if not self._on_s(i, j):
+                self.add_s_line(i, j - 1, j + 1)
+                return
+            lo, hi = self._run_t(i, j, -1), self._run_t(i, j, 1)
+            if (not self._on_t(i, hi), hi - j) <= (not self._on_t(i, lo), j - lo):
+                self.add_s_line(i, j, hi)
+            else:
+                self.add_s_line(i, lo, j)
         elif axis == "t" and not self._on_s(i, j):
-            self.add_t_line(j, i - 1, i + 1)
+            if not self._on_t(i, j):
+                self.add_t_line(j, i - 1, i + 1)
+                return
+            lo, hi = self._run_s(i, j, -1), self._run_s(i, j, 1)
+            if (not self._on_s(hi, j), hi - i) <= (not self._on_s(lo, j), i - lo):
+                self.add_t_line(j, i, hi)
+            else:
+                self.add_t_line(j, lo, i)
 
 
 # ------------------------------------------------------------------- closure
-def _cover(pairs: np.ndarray) -> list[int]:
-    """T-junctions to extend so that each offending pair has one of them: a
-    greedy vertex cover (the junction in more pairs first, then the s-direction
-    one), so a pair costs one extension instead of two."""
-    degree = np.bincount(pairs.ravel())
+def _step(edges: _Edges, right, up, i: int, j: int, axis: int) -> tuple[tuple[int, int], bool]:
+    """One-face extension of a T-junction at (i, j): (grid step to add, whether
+    the line it runs on to is met at a vertex already, so that it costs none)."""
+    if axis == 0:
+        d = -1 if right[i, j] else 1
+        x = edges._run_s(i, j, d)
+        return ((i, i + 1) if d > 0 else (i - 1, i)), edges._on_s(x, j)
+    d = -1 if up[i, j] else 1
+    y = edges._run_t(i, j, d)
+    return ((j, j + 1) if d > 0 else (j - 1, j)), edges._on_t(i, y)
+
+
+def _cover(pairs: np.ndarray, free: np.ndarray, behind: np.ndarray) -> list[int]:
+    """T-junctions to extend so that each offending pair has one of them.
+
+    A greedy vertex cover: per pair, the junction whose extension step costs
+    no vertex (it ends on a vertex), else the one that meets the other's
+    extension behind itself (one step forward clears that; a meeting ahead
+    needs two or more), else the junction in more pairs, else the s-direction one.
+    behind : (m, 2) bool per pair and member.
+    """
+    degree = np.bincount(pairs.ravel(), minlength=len(free))
     chosen: set[int] = set()
-    for h, v in pairs.tolist():
+    for (h, v), (bh, bv) in zip(pairs.tolist(), behind.tolist()):
         if h not in chosen and v not in chosen:
-            chosen.add(v if degree[v] > degree[h] else h)
+            chosen.add(v if (free[v], bv, degree[v]) > (free[h], bh, degree[h]) else h)
     return sorted(chosen)
 
 
@@ -178,15 +233,26 @@ def _make_suitable(edges: _Edges) -> TMesh:
             return mesh
         tj = report.junctions
         _, right, _, up = mesh.edge_flags()
-        for k in _cover(report.pairs):
+        steps = {}
+        free = np.zeros(len(tj.points), dtype=bool)
+        for k in np.unique(report.pairs).tolist():
+            i, j = tj.points[k].tolist()
+            steps[k], free[k] = _step(edges, right, up, i, j, int(tj.axis[k]))
+        # where each pair meets, relative to each junction's direction of extension
+        h, v = report.pairs[:, 0], report.pairs[:, 1]
+        d_s = tj.points[v, 0] - tj.points[h, 0]
+        if mesh.periodic:
+            d_s = np.mod(d_s + edges.s_n // 2, edges.s_n) - edges.s_n // 2
+        d_t = tj.points[h, 1] - tj.points[v, 1]
+        dir_h = np.where(right[tj.points[h, 0], tj.points[h, 1]], -1, 1)
+        dir_v = np.where(up[tj.points[v, 0], tj.points[v, 1]], -1, 1)
+        behind = np.stack([d_s * dir_h < 0, d_t * dir_v < 0], axis=1)
+        for k in _cover(report.pairs, free, behind):
             i, j = tj.points[k]
-            # close the missing edge up to the next perpendicular line
             if tj.axis[k] == 0:
-                step = (i, i + 1) if not right[i, j] else (i - 1, i)
-                edges.add_t_line(j, *step)
+                edges.add_t_line(j, *steps[k])
             else:
-                step = (j, j + 1) if not up[i, j] else (j - 1, j)
-                edges.add_s_line(i, *step)
+                edges.add_s_line(i, *steps[k])
     raise KernelError("refinement: analysis-suitability closure did not converge")
 
 
