@@ -149,6 +149,18 @@ def test_cylinder_with_planar_caps():
     assert fwd.stats.max_inside_mm <= coarse.chord_error_mm.max() + 1e-9
 
 
+def test_chord_error_of_some_faces_is_measured_on_those_faces_alone():
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeCylinder
+
+    cyl = _nurbs(BRepPrimAPI_MakeCylinder(5.0, 20.0).Shape())
+    settings = TessellationSettings(deflection_mm=0.1)
+    every = tessellate(cyl, settings).chord_error_mm
+    assert every.max() > 0
+    for face in range(len(every)):
+        assert tessellate(cyl, settings).chord_error_on([face]) == pytest.approx(every[face], rel=1e-12, abs=1e-15)
+    assert tessellate(cyl, settings).chord_error_on([]) == 0.0
+
+
 def test_regions_partition_the_histogram(sphere, sphere_fine):
     def regions(points):
         return np.where(points[:, 2] < -5, "distal", np.where(points[:, 2] > 5, "proximal", "shaft"))

@@ -13,6 +13,7 @@ tolerance (adaptive Gauss integration); a face short by more than
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -81,7 +82,8 @@ class Tessellation:
         converted (distances on it stay tessellation-based)
     reversed_faces : (F,) bool, face orientation is REVERSED (flip S_u x S_v)
     chord_error_mm : (F,) float, measured largest distance between triangles
-        (centroids and edge midpoints) and the exact surface
+        (centroids, edge midpoints, circumcentres) and the exact surface; computed
+        when first asked for (``chord_error_on`` measures only some faces)
     """
 
     vertices: np.ndarray
@@ -94,7 +96,6 @@ class Tessellation:
     face_area_mesh_mm2: np.ndarray
     surfaces: tuple[SplineSurface | None, ...]
     reversed_faces: np.ndarray
-    chord_error_mm: np.ndarray
     faces: tuple  # TopoDS_Face, in the order of the face index
     surface_set: SurfaceSet | None = None  # the surfaces packed for batched evaluation
     native_faces: np.ndarray | None = None  # (F,) bool, the face lies on its spline surface with the same (u, v)
@@ -108,6 +109,23 @@ class Tessellation:
     @property
     def face_count(self) -> int:
         return len(self.faces)
+
+    @cached_property
+    def chord_error_mm(self) -> np.ndarray:
+        return chord_errors(self.surface_set, self.vertices, self.uv, self.triangles, self.triangle_face,
+                            self.face_count)
+
+    def chord_error_on(self, faces: np.ndarray) -> float:
+        """Largest chord error (mm) over the given face indices (0.0 for none), measured on those faces only."""
+        faces = np.unique(np.asarray(faces, dtype=np.int64))
+        if len(faces) == 0:
+            return 0.0
+        if "chord_error_mm" in self.__dict__ or len(faces) == self.face_count:
+            return float(self.chord_error_mm[faces].max())
+        keep = np.isin(self.triangle_face, faces)
+        chord = chord_errors(self.surface_set, self.vertices, self.uv, self.triangles[keep],
+                             self.triangle_face[keep], self.face_count)
+        return float(chord[faces].max())
 
     def triangle_areas(self) -> np.ndarray:
         tri = self.vertices[self.triangles]
@@ -577,7 +595,6 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
             f"face {index}: tessellation covers {area_mesh[index]:.4g} mm^2 of {area_exact[index]:.4g} mm^2 "
             f"({100 * area_mesh[index] / area_exact[index]:.2f} %); refusing a tessellation-based distance"
         )
-    chord = chord_errors(sset, vertices, uv_all, triangles, tri_face_all, count)
     return Tessellation(
         vertices=vertices,
         triangles=triangles,
@@ -589,7 +606,6 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
         face_area_mesh_mm2=area_mesh,
         surfaces=tuple(surfaces),
         reversed_faces=reversed_arr,
-        chord_error_mm=chord,
         faces=tuple(faces),
         surface_set=sset,
         native_faces=np.array(natives, dtype=bool),
