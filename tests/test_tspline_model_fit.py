@@ -177,3 +177,24 @@ def test_split_direction_follows_the_residual():
     assert _split_axes(np.arange(3), elem, u, v, res, np.ones(n), halvable, np.inf).all()
     halvable[2, 0] = False
     assert _split_axes(np.arange(3), elem, u, v, res, np.ones(n), halvable, 2.0)[2].tolist() == [False, True]
+
+
+def test_once_share_and_rms_hold_only_points_beyond_the_maximum_ask_for_refinement():
+    from bonecad.tspline_model.fit import _marked_elements
+
+    ts = cylinder(12, 6)
+    rng = np.random.default_rng(2)
+    n = 20000
+    s, t = rng.uniform(0, PERIOD, n), rng.uniform(0, LENGTH, n)
+    elem, _, _ = ts.extraction.locate(s, t)
+    tol = FitTolerances(share_within=(0.99, 0.25), max_deviation_mm=1.0, rms_mm=0.1, mark_fraction=0.6,
+                        mark_deficit_factor=2.0, min_element_mm=0.1)
+    distance = np.full(n, 0.05)
+    distance[: n // 200] = 0.4  # 0.5 % beyond 0.25 mm: the share holds
+    distance[n // 200] = 1.5  # one point beyond the maximum
+    marked, _ = _marked_elements(ts, elem, distance, np.ones(n), tol)
+    assert marked.tolist() == [elem[n // 200]]
+    # with the share missed, the elements holding the points beyond 0.25 mm are marked too
+    distance[: n // 20] = 0.4
+    marked, _ = _marked_elements(ts, elem, distance, np.ones(n), tol)
+    assert elem[n // 200] in marked and len(marked) > 1

@@ -402,8 +402,8 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     (area) of their points beyond the tolerance distance; the smallest set
     holding ``mark_fraction`` of that weight (near the target, only
     ``mark_deficit_factor`` times the weight the share target still misses)
-    is marked, plus every element
-    with a point beyond the maximum deviation. An element may be halved
+    is marked, plus every element with a point beyond the maximum deviation
+    (only those once the share and the RMS targets hold). An element may be halved
     along s (t) only while its physical size along s (t) is at least twice
     ``min_element_mm``; those ``frozen`` (a function of element bounds ->
     bool) are left alone, and ``stalled`` points ((n,) bool, within the
@@ -425,8 +425,10 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     order = np.argsort(-wbad, kind="stable")
     cum = np.cumsum(wbad[order])
     marked = np.zeros(n_e, dtype=bool)
-    if cum[-1] > 0:
-        deficit = tol.share_within[0] * weights.sum() - weights[distance <= tol.share_within[1]].sum()
+    deficit = tol.share_within[0] * weights.sum() - weights[distance <= tol.share_within[1]].sum()
+    rms_met = np.sqrt(np.sum(weights * distance**2) / weights.sum()) <= tol.rms_mm
+    # once the share and the RMS hold, only the points beyond the maximum ask for more
+    if cum[-1] > 0 and (deficit > 0 or not rms_met):
         fraction = tol.mark_fraction if deficit <= 0 else min(tol.mark_fraction, tol.mark_deficit_factor * deficit / cum[-1])
         k = int(np.searchsorted(cum, fraction * cum[-1])) + 1
         marked[order[:k]] = True
