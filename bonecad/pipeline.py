@@ -8,6 +8,7 @@ Every command of the CLI is one function here, writing through
 """
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import tempfile
@@ -239,6 +240,10 @@ def reconstruct_bone(
             with timings.stage("reference entities to STEP"):
                 write_step(compound(frame_shapes(frame), "reference_entities"), stage_dir / "curves.step")
         else:
+            with timings.stage("OpenCascade and matplotlib imports"):
+                # once, here, so the children forked below inherit them instead of importing them again
+                importlib.import_module("bonecad.io.brep")
+                importlib.import_module("bonecad.analysis.render")
             with timings.stage("contour curves"):
                 result.contours = contour_curves(bone, frame, config=config, jobs=jobs)
             # the second core: curves.step/.iges/.png, then the NURBS model, its files and analysis

@@ -124,9 +124,9 @@ class DirectionResult:
 class DeviationResult:
     """Both directions, with the accuracy of the method.
 
-    unrefined_bound_mm : largest chord error of the tessellation on the faces
-        where a distance was not refined on the exact surface (bounds the error
-        of every such distance; 0.0 when all were refined)
+    unrefined_bound_mm : largest chord error of the tessellation's triangles
+        within reach of the distances not refined on the exact surface (bounds
+        the error of every such distance; 0.0 when all were refined)
     vertex_deviation_mm : (n,) signed deviation at each mesh vertex (for colour maps)
     timings_s : seconds per step
     """
@@ -379,8 +379,11 @@ def shape_deviation(
     vertex_sd = signed_distance_to_shape(vertices, tess, locator=shape_locator)
     timings["vertices"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    # the chord error bounds only the distances left on the tessellation: measured on their faces
-    bound = tess.chord_error_on(np.concatenate([sd.face[~sd.refined], vertex_sd.face[~vertex_sd.refined]]))
+    # the chord error bounds only the distances left on the tessellation: measured about them
+    bound = tess.chord_error_near(
+        np.vstack([samples.points[~sd.refined], vertices[~vertex_sd.refined]]),
+        np.concatenate([sd.distance_mm[~sd.refined], vertex_sd.distance_mm[~vertex_sd.refined]]),
+    )
     timings["chord_error_bound"] = time.perf_counter() - t0
     return DeviationResult(
         mesh_to_cad=forward,

@@ -83,7 +83,7 @@ class Tessellation:
     reversed_faces : (F,) bool, face orientation is REVERSED (flip S_u x S_v)
     chord_error_mm : (F,) float, measured largest distance between triangles
         (centroids, edge midpoints, circumcentres) and the exact surface; computed
-        when first asked for (``chord_error_on`` measures only some faces)
+        when first asked for (``chord_error_near`` measures only some triangles)
     """
 
     vertices: np.ndarray
@@ -115,17 +115,29 @@ class Tessellation:
         return chord_errors(self.surface_set, self.vertices, self.uv, self.triangles, self.triangle_face,
                             self.face_count)
 
-    def chord_error_on(self, faces: np.ndarray) -> float:
-        """Largest chord error (mm) over the given face indices (0.0 for none), measured on those faces only."""
-        faces = np.unique(np.asarray(faces, dtype=np.int64))
-        if len(faces) == 0:
+    def chord_error_near(self, points: np.ndarray, distance_mm: np.ndarray) -> float:
+        """Largest chord error (mm) of the triangles within reach of query points (0.0 for none).
+
+        A point's distance measured on the tessellation (``distance_mm``) differs
+        from its exact distance by at most the chord error of the triangles that
+        come within that distance of it, plus one triangle; so only triangles whose
+        centroid lies within distance + the longest triangle edge are measured.
+        """
+        from scipy.spatial import cKDTree
+
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(points) == 0:
             return 0.0
-        if "chord_error_mm" in self.__dict__ or len(faces) == self.face_count:
-            return float(self.chord_error_mm[faces].max())
-        keep = np.isin(self.triangle_face, faces)
-        chord = chord_errors(self.surface_set, self.vertices, self.uv, self.triangles[keep],
-                             self.triangle_face[keep], self.face_count)
-        return float(chord[faces].max())
+        t = self.vertices[self.triangles]
+        edge = max(float(np.linalg.norm(t[:, (k + 1) % 3] - t[:, k], axis=1).max()) for k in range(3))
+        reach = np.abs(np.asarray(distance_mm, dtype=np.float64)) + edge
+        hits = cKDTree(t.mean(axis=1)).query_ball_point(points, reach, workers=-1)
+        near = np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]))
+        if len(near) == 0:
+            return 0.0
+        chord = chord_errors(self.surface_set, self.vertices, self.uv, self.triangles[near],
+                             self.triangle_face[near], self.face_count)
+        return float(chord.max())
 
     def triangle_areas(self) -> np.ndarray:
         tri = self.vertices[self.triangles]
