@@ -67,7 +67,7 @@ def check_frame(frame: np.ndarray) -> np.ndarray:
 def screen_axes(frame: np.ndarray, view: View) -> np.ndarray:
     """(3, 3) rows: screen right, screen up, towards the viewer, in model coordinates."""
     f = check_frame(frame)
-    lateral, anterior, proximal = f[:, 0], f[:, 1], f[:, 2]
+    anterior, proximal = f[:, 1], f[:, 2]
     if view == "anterior":
         toward = anterior
     elif view == "posterior":
