@@ -177,15 +177,14 @@ def _run(args: argparse.Namespace) -> None:
                                       distal_boundary_mm=args.distal_boundary,
                                       proximal_boundary_mm=args.proximal_boundary)
         _print_result(result)
-        print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} "
-              f"({sum(result.timings_s.values()):.1f} s)")
+        print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
     elif args.command == "segment":
         bone = pipeline.run_segment(args.ct, args.out)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
     elif args.command == "demo":
         result = pipeline.run_demo(args.out, config=config)
         _print_result(result)
-        print(f"demo outputs written to {args.out} ({sum(result.timings_s.values()):.1f} s)")
+        print(f"demo outputs written to {args.out} ({result.wall_s:.1f} s)")
 
 
 def main(argv: list[str] | None = None) -> int:
