@@ -73,3 +73,24 @@ def test_bad_input_leaves_nothing(tmp_path, capsys):
     assert main(["reconstruct", str(bad), "--out", str(out), "-q"]) == 2
     assert not out.exists()
     assert "empty" in capsys.readouterr().err
+
+
+def test_background_jobs_change_nothing_but_time(tmp_path, phantom):
+    """The second core's jobs (bonecad.parallel) give the same models and figures as one process."""
+    from bonecad.config import load_config
+    from bonecad.pipeline import reconstruct_bone
+
+    reports = []
+    for background in (True, False):
+        config = load_config()
+        config["pipeline"]["background_jobs"] = background
+        out = tmp_path / f"background_{background}"
+        result = reconstruct_bone(phantom, out, config=config)
+        assert result.models["nurbs"].control_points > 0 and result.models["tspline"].control_points > 0
+        report = json.loads((out / "report.json").read_text())
+        for model in report["models"].values():
+            model["info"].pop("timings_s", None)
+            model["deviation"].pop("timings_s", None)
+        reports.append((report["models"], json.loads((out / "curves.json").read_text()),
+                        sorted(p.name for p in out.iterdir())))
+    assert reports[0] == reports[1]
