@@ -96,7 +96,8 @@ def test_report_json_and_html(sphere, tmp_path):
     models = [
         ModelReport("nurbs", {"faces": 1, "control_points": 45}, dev, seam_continuity(shape),
                     knot_continuity(shape), {"deviation map": cmap, "histogram": hist}),
-        ModelReport("tspline", {"faces": 1, "control_points": 30}, dev, seam_continuity(shape), None, {}),
+        ModelReport("tspline", {"faces": 1, "control_points": 30, "cap_control_points": 4}, dev,
+                    seam_continuity(shape), None, {}),
     ]
     json_path, html_path = write_report(
         tmp_path, input_summary={"file": "sphere", "triangles": len(f)}, frame={"axes": frame},
@@ -109,7 +110,8 @@ def test_report_json_and_html(sphere, tmp_path):
     assert set(report["models"]["nurbs"]["deviation"]["mesh_to_cad"]["regions"]) == {"distal", "shaft", "proximal"}
     assert report["models"]["nurbs"]["figures"] == {"deviation map": "deviation_nurbs.png", "histogram": "histogram_nurbs.png"}
     rows = {r["quantity"]: r for r in report["comparison"]}
-    assert rows["control points"]["nurbs"] == 45 and rows["control points"]["tspline"] == 30
+    counts = rows["control points (all faces, apex caps included)"]
+    assert counts["nurbs"] == 45 and counts["tspline"] == 34
     within = rows["surface within 0.25 mm"]["nurbs"]
     d = dev.mesh_to_cad
     assert within == pytest.approx(d.weights[np.abs(d.deviation_mm) <= 0.25].sum() / d.weights.sum())

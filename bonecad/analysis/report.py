@@ -66,6 +66,13 @@ class ModelReport:
     figures: dict[str, Path] = field(default_factory=dict)
 
 
+def _all_control_points(info: dict) -> int | None:
+    """A model's control points with those of its apex caps (the T-spline counts them apart)."""
+    if info.get("control_points") is None:
+        return None
+    return int(info["control_points"]) + int(info.get("cap_control_points") or 0)
+
+
 def _worst_away_from_caps(continuity: SeamContinuity | None) -> str | None:
     """The worst seam class among seams that touch no apex cap face (None without names)."""
     if continuity is None or continuity.face_names is None:
@@ -104,8 +111,9 @@ def comparison_rows(models: list[ModelReport]) -> list[dict[str, Any]] | None:
     if not {"nurbs", "tspline"} <= set(by_name):
         return None
     rows = []
-    for key, label in (("faces", "faces"), ("control_points", "control points")):
-        rows.append({"quantity": label, **{n: by_name[n].info.get(key) for n in ("nurbs", "tspline")}})
+    rows.append({"quantity": "faces", **{n: by_name[n].info.get("faces") for n in ("nurbs", "tspline")}})
+    rows.append({"quantity": "control points (all faces, apex caps included)",
+                 **{n: _all_control_points(by_name[n].info) for n in ("nurbs", "tspline")}})
     rows.append(
         {
             "quantity": "continuity class (worst seam)",
