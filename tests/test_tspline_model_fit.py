@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from bonecad.tspline import TSpline, check_suitability
 from bonecad.tspline_model.fit import (
@@ -171,12 +172,44 @@ def test_split_direction_follows_the_residual():
     # element 0 misses detail along u, element 1 along v, element 2 along both
     res = np.where(elem == 0, np.sin(6 * u), np.where(elem == 1, np.sin(6 * v), np.sin(6 * u) + np.sin(6 * v)))
     halvable = np.ones((3, 2), dtype=bool)
-    axes = _split_axes(np.arange(3), elem, u, v, res, np.ones(n), halvable, 2.0)
+    apart = sp.csr_matrix((3, 3))  # no two of them neighbours
+    axes = _split_axes(np.arange(3), elem, u, v, res, np.ones(n), halvable, 2.0, apart)
     assert axes.tolist() == [[True, False], [False, True], [True, True]]
     # isotropic setting: always both; a direction below the size limit is dropped
-    assert _split_axes(np.arange(3), elem, u, v, res, np.ones(n), halvable, np.inf).all()
+    assert _split_axes(np.arange(3), elem, u, v, res, np.ones(n), halvable, np.inf, apart).all()
     halvable[2, 0] = False
-    assert _split_axes(np.arange(3), elem, u, v, res, np.ones(n), halvable, 2.0)[2].tolist() == [False, True]
+    assert _split_axes(np.arange(3), elem, u, v, res, np.ones(n), halvable, 2.0, apart)[2].tolist() == [False, True]
+
+
+def test_neighbouring_marked_elements_share_one_split_direction():
+    from bonecad.tspline import refine_elements
+    from bonecad.tspline_model.fit import _marked_adjacency, _split_axes
+
+    ts = cylinder(12, 6)
+    ext = ts.extraction
+    i0, _, j0, _ = ext.index_bounds.T
+    cell = {(int(a), int(b)): e for e, (a, b) in enumerate(zip(i0, j0))}
+    lo_j = int(j0.min())
+    # a (first s-cell) and b (last s-cell) are neighbours across the seam, c on top of a, d far away
+    a, b, c, d = cell[0, lo_j + 2], cell[11, lo_j + 2], cell[0, lo_j + 3], cell[6, lo_j + 4]
+    marked = np.array([a, b, c, d])
+    adj = _marked_adjacency(ext, marked).toarray()
+    assert adj.tolist() == [[0, 1, 1, 0], [1, 0, 0, 0], [1, 0, 0, 0], [0, 0, 0, 0]]
+    rng = np.random.default_rng(7)
+    n = 8000
+    elem = marked[rng.integers(0, 4, n)]
+    u, v = rng.random(n), rng.random(n)
+    # a and d miss detail along u, b (strongly) and c along v: the cluster {a, b, c} prefers v
+    res = np.select([elem == a, elem == b, elem == c], [np.sin(6 * u), 3 * np.sin(6 * v), np.sin(6 * v)],
+                    np.sin(6 * u))
+    halvable = np.ones((ext.n_elements, 2), dtype=bool)
+    axes = _split_axes(marked, elem, u, v, res, np.ones(n), halvable, 1.0, sp.csr_matrix(adj))
+    assert axes.tolist() == [[False, True]] * 3 + [[True, False]]
+    # one direction for the pair: their new t-lines continue into each other, no crossing extensions to close
+    own = np.array([[True, False], [False, True]])
+    shared = refine_elements(ts, [a, b], axes[:2])
+    mixed = refine_elements(ts, [a, b], own)
+    assert shared.added < mixed.added, (shared.added, mixed.added)
 
 
 def test_once_share_and_rms_hold_only_points_beyond_the_maximum_ask_for_refinement():

@@ -89,15 +89,17 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
 
 
 def test_write_tspline_round_trips(model, tmp_path):
+    from bonecad.io.brep import is_valid, volume_mm3
     from bonecad.io.cad import read_step
-    from bonecad.io.brep import is_valid
 
     paths = write_tspline(model, tmp_path)
     assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json"}
     back = read_step(paths["step"])
     solids = back.solids()
     assert len(solids) == 1 and is_valid(solids[0].wrapped)
-    assert abs(solids[0].volume - model_volume(model)) < 1e-3 * model_volume(model)
+    # adaptive integration on both (DESIGN.md: BRepGProp's plain integration, which build123d's
+    # .volume uses, is off by ~0.1 % on B-spline faces with many knots)
+    assert abs(volume_mm3(solids[0].wrapped, 1e-4) - model_volume(model)) < 1e-6 * model_volume(model)
     # every face is named by its region in the file (STEP entity names)
     text = paths["step"].read_text()
     names = [name for name, _ in model.face_names]
@@ -116,12 +118,9 @@ def test_write_tspline_round_trips(model, tmp_path):
 
 
 def model_volume(model) -> float:
-    from OCP.BRepGProp import BRepGProp
-    from OCP.GProp import GProp_GProps
+    from bonecad.io.brep import volume_mm3
 
-    props = GProp_GProps()
-    BRepGProp.VolumeProperties_s(model.shape, props, 1e-4)
-    return props.Mass()
+    return volume_mm3(model.shape, 1e-4)
 
 
 def load_tube(path):

@@ -15,7 +15,8 @@ approximation"; Piegl & Tiller, The NURBS Book, sec. 9.4), and the surface is
 refined where the error stays above the tolerance:
 
 - ``mode="local"``: the failing Bezier elements are halved, across the
-  direction their residual varies along (or both), by exact,
+  direction their residual varies along (or both; one direction for each
+  cluster of neighbouring failing elements), by exact,
   analysis-suitable local refinement (Scott, Li, Sederberg, Hughes 2012);
 - ``mode="global"``: the same knot lines, but whole, are inserted, which
   keeps a tensor product (the comparison surface).
@@ -32,10 +33,11 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from bonecad.errors import FitError, InputError
-from bonecad.tspline import KnotSegment, TSpline, insert_segments, refine_elements
+from bonecad.tspline import BezierExtraction, KnotSegment, TSpline, insert_segments, refine_elements
 from bonecad.tspline.basis import bernstein3
 
 log = logging.getLogger("bonecad")
@@ -67,7 +69,9 @@ class FitTolerances:
     split_anisotropy : a marked element is halved across one direction only
         when the part of its residual that varies along that direction (between
         four bins of the local coordinate) is this many times the part varying
-        along the other; else it is split into four (inf: always four).
+        along the other, both summed over its cluster of edge-adjacent marked
+        elements (one direction per cluster); else it is split into four (inf:
+        always four).
     noise_factor : noise-aware stopping (with ``fit_adaptive(noise=...)``): a
         point whose distance is within this many times the local noise level
         of the data is fitted as well as the data allow, and does not ask for
@@ -436,15 +440,38 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     return np.flatnonzero(marked & eligible & ((wbad > 0) | (worst > tol.max_deviation_mm))), halvable
 
 
-def _split_axes(marked: np.ndarray, elem, u, v, residual, weights, halvable, anisotropy: float) -> np.ndarray:
+def _marked_adjacency(ext: BezierExtraction, marked: np.ndarray) -> sp.csr_matrix:
+    """(m, m) symmetric csr 0/1: which of the marked elements share an edge
+    (their grid cells lie side by side, across the periodic seam too)."""
+    ce = ext.cell_element
+    ce = np.vstack([ce, ce[:1]]) if ext.mesh.periodic else ce
+    pairs = np.concatenate([np.stack([ce[:-1].ravel(), ce[1:].ravel()], axis=1),
+                            np.stack([ce[:, :-1].ravel(), ce[:, 1:].ravel()], axis=1)])
+    slot = np.full(ext.n_elements + 1, -1)  # index -1 (end-strip cells) stays unmarked
+    slot[marked] = np.arange(len(marked))
+    q = slot[pairs]
+    q = q[(q >= 0).all(axis=1) & (q[:, 0] != q[:, 1])]
+    m = len(marked)
+    a = sp.csr_matrix((np.ones(len(q)), (q[:, 0], q[:, 1])), shape=(m, m))
+    return ((a + a.T) > 0).astype(np.float64)
+
+
+def _split_axes(marked: np.ndarray, elem, u, v, residual, weights, halvable, anisotropy: float,
+                adjacency: sp.csr_matrix) -> np.ndarray:
     """(len(marked), 2) bool: halve each marked element in s, in t, or both.
 
     residual : (n,) signed distance of each point (mm); u, v : its local
     coordinates in its element. The residual a refinement along s can absorb
     varies with u: its weighted between-bin variance over four bins of u
-    (likewise v). The element is halved only along s when that exceeds
-    ``anisotropy`` times the v figure (and only along t in the mirror case),
-    else both ways; directions below the size limit (``halvable``) are dropped.
+    (likewise v). adjacency : (m, m) which marked elements share an edge
+    (``_marked_adjacency``). The figures are summed over each connected
+    cluster of marked elements, so that a cluster is halved one way: its new
+    lines then continue into each other, where neighbours halved across each
+    other would leave crossing T-junction extensions for the
+    analysis-suitability closure to resolve with extra vertices. A cluster is
+    halved only along s when its u figure exceeds ``anisotropy`` times its v
+    figure (only along t in the mirror case), else both ways; directions
+    below the size limit (``halvable``) are dropped.
     """
     axes = np.ones((len(marked), 2), dtype=bool)
     if np.isfinite(anisotropy) and len(marked):
@@ -456,13 +483,14 @@ def _split_axes(marked: np.ndarray, elem, u, v, residual, weights, halvable, ani
         n = len(marked)
         wsum = np.bincount(k, w, minlength=n)
         mean2 = np.bincount(k, w * r, minlength=n) ** 2 / np.maximum(wsum, 1e-300)
+        n_clusters, cluster = connected_components(adjacency, directed=False)
         spread = []
         for x in (u[sel], v[sel]):
             b = k * 4 + np.minimum((x * 4).astype(np.int64), 3)
             wb = np.bincount(b, w, minlength=4 * n)
             rb = np.bincount(b, w * r, minlength=4 * n)
-            between = (rb**2 / np.maximum(wb, 1e-300)).reshape(n, 4).sum(axis=1) - mean2
-            spread.append(np.maximum(between, 0.0))
+            between = np.maximum((rb**2 / np.maximum(wb, 1e-300)).reshape(n, 4).sum(axis=1) - mean2, 0.0)
+            spread.append(np.bincount(cluster, between, minlength=n_clusters)[cluster])
         axes[:, 1] = ~(spread[0] > anisotropy * spread[1])
         axes[:, 0] = ~(spread[1] > anisotropy * spread[0])
     axes &= halvable[marked]
@@ -585,7 +613,7 @@ def fit_adaptive(
                             f"{tol.noise_factor} x the local noise)")
             break
         axes = _split_axes(marked, elem, u, v, _signed_distance(ts, points, s, t, dist), w, halvable,
-                           tol.split_anisotropy)
+                           tol.split_anisotropy, _marked_adjacency(ts.extraction, marked))
         new = refine_elements(ts, marked, axes).tspline if mode == "local" else _refine_globally(ts, marked, axes)
         if new.n_control > tol.max_control_points:
             stopped = f"control-point budget ({tol.max_control_points}) reached: the next round needs {new.n_control}"
