@@ -210,6 +210,14 @@ class TMesh:
         return np.stack([ii, jj], axis=1)
 
     @cached_property
+    def extraction(self):
+        """The Bezier extraction of this mesh (``extraction.extract``), computed once: every
+        T-spline on the mesh shares it (a fit re-solves control points on one mesh many times)."""
+        from .extraction import extract
+
+        return extract(self)
+
+    @cached_property
     def anchor_knots(self) -> tuple[np.ndarray, np.ndarray]:
         """Local knot indices of every anchor: ((n, 5) s-lines unwrapped, (n, 5) t-lines)."""
         return self.knot_indices(self.anchors)

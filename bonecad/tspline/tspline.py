@@ -20,7 +20,7 @@ import scipy.sparse as sp
 
 from bonecad.errors import InputError
 from bonecad.tspline.basis import bernstein3, bspline5, knot_span
-from bonecad.tspline.extraction import BezierExtraction, extract
+from bonecad.tspline.extraction import BezierExtraction
 from bonecad.tspline.tmesh import TMesh
 
 #: Points evaluated per batch (bounds the temporary sparse rows to ~70 MB).
@@ -102,9 +102,9 @@ class TSpline:
         a = self.mesh.anchors
         return np.stack([self.mesh.s_value(a[:, 0]), self.mesh.t_lines[a[:, 1]]], axis=1)
 
-    @cached_property
+    @property
     def extraction(self) -> BezierExtraction:
-        return extract(self.mesh)
+        return self.mesh.extraction
 
     @cached_property
     def bezier_homogeneous(self) -> np.ndarray:
