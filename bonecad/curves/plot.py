@@ -28,14 +28,21 @@ def curves_png(path: str | Path, vertices: np.ndarray, faces: np.ndarray, contou
         screen = screen_axes(frame, view)
         h, w = raster.mask.shape
         pixel = (raster.extent_mm[3] - raster.extent_mm[2]) / h
-        for curve in contours.all_curves():
-            s = curve.curve(u) @ screen.T
-            col = np.clip(((s[:, 0] - raster.extent_mm[0]) / pixel).astype(int), 0, w - 1)
-            row = np.clip(((raster.extent_mm[3] - s[:, 1]) / pixel).astype(int), 0, h - 1)
-            visible = s[:, 2] >= raster.depth[row, col] - 1.5
-            colour = REGION_COLOURS[curve.region]
-            ax.plot(s[:, 0], s[:, 1], color=colour, lw=0.5, alpha=0.25)
-            ax.plot(np.where(visible, s[:, 0], np.nan), s[:, 1], color=colour, lw=1.0)
+        # one line per region and style (curves joined by NaN gaps): a few artists, not hundreds
+        for region, colour in REGION_COLOURS.items():
+            curves = [c for c in contours.all_curves() if c.region == region]
+            if not curves:
+                continue
+            s = np.stack([c.curve(u) for c in curves]) @ screen.T  # (curves, samples, 3)
+            col = np.clip(((s[..., 0] - raster.extent_mm[0]) / pixel).astype(int), 0, w - 1)
+            row = np.clip(((raster.extent_mm[3] - s[..., 1]) / pixel).astype(int), 0, h - 1)
+            visible = s[..., 2] >= raster.depth[row, col] - 1.5
+            gap = np.full((len(curves), 1), np.nan)
+            x = np.hstack([s[..., 0], gap]).ravel()
+            y = np.hstack([s[..., 1], gap]).ravel()
+            shown = np.hstack([np.where(visible, s[..., 0], np.nan), gap]).ravel()
+            ax.plot(x, y, color=colour, lw=0.5, alpha=0.25)
+            ax.plot(shown, y, color=colour, lw=1.0)
         ax.set_title(f"{view} view")
         ax.set_xlabel("mm")
     axes[0].set_ylabel("mm above the plafond centre")
