@@ -188,9 +188,12 @@ def angle_map(contours: ContourSet, distal_ends: np.ndarray, proximal_ends: np.n
     return AngleMap(distal, proximal, frame.distal_boundary_mm, frame.proximal_boundary_mm, centre)
 
 
-def refit_section(contour: ContourCurve, mapping: AngleMap, *, fairness: float = 1e-4) -> tuple[BSplineCurve, float]:
+def refit_section(
+    contour: ContourCurve, mapping: AngleMap, *, fairness: float = 1e-4
+) -> tuple[BSplineCurve, float, float]:
     """A shaft section refitted with the parameters of ``mapping`` (no parameter correction, which
-    would drift back to arc length). Returns the curve and its largest distance from the raw section."""
+    would drift back to arc length). Returns the curve and its largest and RMS distance from the
+    raw section (mm)."""
     original = contour.curve
     count = original.count
     points = densified(np.asarray(contour.raw_points, dtype=np.float64), 4 * count, closed=True)
@@ -208,7 +211,8 @@ def refit_section(contour: ContourCurve, mapping: AngleMap, *, fairness: float =
         tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
         curve = BSplineCurve(_solve_tangent_distance(a, points, tangents, weights, fair), knots, 3, True)
     foot = _parameters_on(curve, points)  # not from u: Newton from the mapped parameters can jump
-    return curve, float(np.linalg.norm(curve(foot) - points, axis=1).max())
+    distance = np.linalg.norm(curve(foot) - points, axis=1)
+    return curve, float(distance.max()), float(np.sqrt(np.mean(distance**2)))
 
 
 def skin_end(curves: list[BSplineCurve], region: str) -> BSplineSurface:
@@ -295,7 +299,7 @@ def bone_surfaces(contours: ContourSet) -> BoneSurfaces:
     shaft_report = RefitReport(
         region="shaft",
         max_deviation_mm=max([m[1] for m in middle], default=0.0),
-        rms_deviation_mm=float("nan"),
+        rms_deviation_mm=float(np.mean([m[2] for m in middle])) if middle else 0.0,
         original_max_deviation_mm=max(c.max_deviation_mm for c in contours.shaft),
         dropped_points=0,
     )
