@@ -280,11 +280,13 @@ def seam_continuity(
     from OCP.TopoDS import TopoDS
     from OCP.TopTools import TopTools_IndexedMapOfShape
 
+    from ..io.brep import names_in_order
+
     tol = tolerances or ContinuityTolerances()
     if samples < 2:
         raise InputError(f"samples must be >= 2, got {samples}")
     faces = shape_faces(shape)
-    names = None if face_names is None else tuple(_names_in_order(faces, face_names))
+    names = None if face_names is None else tuple(names_in_order(faces, face_names))
     edge_map = TopTools_IndexedMapOfShape()
     TopExp.MapShapes_s(shape, TopAbs_EDGE, edge_map)
     # edge -> the faces holding it, each with the edge as that face holds it (first occurrence:
@@ -363,17 +365,6 @@ def seam_continuity(
         tolerances=tol,
         face_names=names,
     )
-
-
-def _names_in_order(faces: list, face_names: list[tuple[str, object]]) -> list[str]:
-    """The name of each of ``faces`` from (name, face) pairs (matched by TopoDS IsSame)."""
-    out = []
-    for face in faces:
-        matches = [name for name, f in face_names if f.IsSame(face)]
-        if len(matches) != 1:
-            raise InputError(f"a face of the shape matches {len(matches)} of the named faces")
-        out.append(matches[0])
-    return out
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

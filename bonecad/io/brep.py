@@ -96,13 +96,21 @@ def named_solid(
     """Sew named faces into a closed shell and make an outward solid of it; (solid, its faces with their names)."""
     shell, sewn = sew([face for _, face in named_faces], tolerance_mm=tolerance_mm)
     solid = solid_from_shell(shell)
-    face_names = []
-    for face in faces(solid):
-        matches = [name for (name, _), f in zip(named_faces, sewn) if f.IsSame(face)]
+    solid_faces = faces(solid)
+    names = names_in_order(solid_faces, [(name, f) for (name, _), f in zip(named_faces, sewn)])
+    return solid, list(zip(names, solid_faces))
+
+
+def names_in_order(shape_faces: list[TopoDS_Face], face_names) -> list[str]:
+    """The name of each of ``shape_faces`` from (name, face) pairs, matched by TopoDS IsSame
+    (the same face whatever its orientation)."""
+    out = []
+    for face in shape_faces:
+        matches = [name for name, f in face_names if f.IsSame(face)]
         if len(matches) != 1:
-            raise KernelError(f"a face of the solid matches {len(matches)} of the sewn faces")
-        face_names.append((matches[0], face))
-    return solid, face_names
+            raise KernelError(f"a face of the shape matches {len(matches)} of the named faces")
+        out.append(matches[0])
+    return out
 
 
 def volume_mm3(shape: TopoDS_Shape, eps: float = VOLUME_EPS) -> float:
@@ -239,13 +247,7 @@ def shape_from_bytes(data: bytes) -> TopoDS_Shape:
 
 def pickle_named_shape(shape: TopoDS_Shape, face_names) -> tuple[bytes, list[str]]:
     """A picklable form of a shape and its (name, face) pairs (names in explorer order)."""
-    names = []
-    for face in faces(shape):
-        matches = [name for name, f in face_names if f.IsSame(face)]
-        if len(matches) != 1:
-            raise KernelError(f"a face of the shape matches {len(matches)} of the named faces")
-        names.append(matches[0])
-    return shape_to_bytes(shape), names
+    return shape_to_bytes(shape), names_in_order(faces(shape), face_names)
 
 
 def unpickle_named_shape(data: bytes, names: list[str]) -> tuple[TopoDS_Shape, tuple[tuple[str, TopoDS_Face], ...]]:
