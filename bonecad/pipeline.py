@@ -24,7 +24,7 @@ from .anatomy.frame import AnatomicalFrame, anatomical_frame
 from . import parallel
 from .config import load_config
 from .curves.contours import ContourSet, bone_coordinates, contour_curves
-from .io.cad import compound, frame_shapes, write_iges, write_step
+from .io.cad import frame_entities, write_iges, write_step
 from .io.output import staged_output
 from .errors import InputError
 from .mesh.bone_mesh import BoneMesh
@@ -133,11 +133,11 @@ def inspect(path: str | Path, *, units: Units = "auto", config: dict | None = No
 
 
 def curve_shapes(contours: ContourSet) -> list:
-    """Named edges of every contour curve, mapped back to scanner coordinates (exact: affine map of poles)."""
+    """(name, edge) of every contour curve, mapped back to scanner coordinates (exact: affine map of poles)."""
     from .curves.occ import to_edge
 
     frame = contours.frame
-    return [to_edge(c.curve.transformed(frame.axes, frame.origin), c.name) for c in contours.all_curves()]
+    return [(c.name, to_edge(c.curve.transformed(frame.axes, frame.origin), c.name)) for c in contours.all_curves()]
 
 
 def contours_dict(contours: ContourSet) -> dict:
@@ -177,10 +177,10 @@ def write_curves(contours: ContourSet, bone: BoneMesh, out_dir: Path) -> None:
     from .curves.plot import curves_png
 
     frame = contours.frame
-    entities = compound(frame_shapes(frame), "reference_entities")
-    shapes = compound([compound(curve_shapes(contours), "contour_curves"), entities], "bonecad_curves")
-    write_step(shapes, out_dir / "curves.step")
-    write_iges(shapes, out_dir / "curves.iges")
+    tree = ("bonecad_curves", [("contour_curves", curve_shapes(contours)),
+                               ("reference_entities", frame_entities(frame))])
+    write_step(tree, out_dir / "curves.step")
+    write_iges(tree, out_dir / "curves.iges")
     vertices, faces = bone_coordinates(bone, frame)
     curves_png(out_dir / "curves.png", vertices, faces, contours)
 
@@ -251,7 +251,7 @@ def reconstruct_bone(
         result = Reconstruction(bone=bone, frame=frame, timings_s=timings, out_dir=out_dir)
         if until == "frame":
             with timings.stage("reference entities to STEP"):
-                write_step(compound(frame_shapes(frame), "reference_entities"), stage_dir / "curves.step")
+                write_step(("reference_entities", frame_entities(frame)), stage_dir / "curves.step")
         else:
             with timings.stage("OpenCascade and matplotlib imports"):
                 # once, here, so the children forked below inherit them instead of importing them again

@@ -6,18 +6,18 @@ import pytest
 
 from bonecad.curves.bspline import fit_curve
 from bonecad.curves.occ import to_edge
-from bonecad.io.cad import compound, frame_shapes
+from bonecad.io.cad import compound_of, frame_entities
 from bonecad.io.interop import to_cadquery
 
 cadquery = pytest.importorskip("cadquery", reason="cadquery is an optional extra")
 
 
 def test_frame_entities_in_a_cadquery_workplane(phantom_frame):
-    shapes = compound(frame_shapes(phantom_frame), "reference_entities")
+    shapes = compound_of(("reference_entities", frame_entities(phantom_frame)))
     workplane = to_cadquery(shapes)
     value = workplane.val()
     assert isinstance(value, cadquery.Shape)
-    assert value.wrapped.IsSame(shapes.wrapped)
+    assert value.wrapped.IsSame(shapes)
     assert len(workplane.faces().vals()) == 4  # L-M, A-P and the two boundary planes
 
 

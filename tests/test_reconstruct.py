@@ -66,6 +66,18 @@ def test_nurbs_step_is_one_closed_valid_solid(nurbs_run, phantom):
     assert abs(props.Mass() - mesh_volume) / mesh_volume < 0.01
 
 
+def test_cad_files_carry_a_fixed_date(nurbs_run):
+    """STEP and IGES headers hold a fixed date, not the time of the run (the same input gives the same file)."""
+    from bonecad.io.brep import FIXED_TIMESTAMP
+
+    iges_date = FIXED_TIMESTAMP.replace("-", "").replace("T", ".").replace(":", "")
+    for path in sorted(nurbs_run.glob("*.step")):
+        assert f"FILE_NAME('{path.stem.replace('curves', 'bonecad_curves')}','{FIXED_TIMESTAMP}'" in path.read_text()
+    for path in sorted(nurbs_run.glob("*.iges")):
+        global_section = "".join(line[:72] for line in path.read_text().splitlines() if line[72:73] == "G")
+        assert global_section.count(f"15H{iges_date}") == 2  # the file's date and its last change
+
+
 def test_bad_input_leaves_nothing(tmp_path, capsys):
     bad = tmp_path / "empty.stl"
     bad.write_bytes(b"")

@@ -39,13 +39,10 @@ def to_geom_curve(curve: BSplineCurve):
 
 
 def to_edge(curve: BSplineCurve, name: str = ""):
-    """A named build123d Edge of ``curve``."""
-    from build123d import Edge
+    """A TopoDS_Edge of ``curve`` (``name`` only for the error message)."""
     from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeEdge
 
     maker = BRepBuilderAPI_MakeEdge(to_geom_curve(curve))
     if not maker.IsDone():
         raise KernelError(f"OpenCascade could not make an edge of curve {name!r}")
-    edge = Edge(maker.Edge())
-    edge.label = name
-    return edge
+    return maker.Edge()

@@ -27,6 +27,8 @@ from .output import staged_file
 
 #: Relative error of the adaptive volume and area integration.
 VOLUME_EPS = 1e-6
+#: STEP and IGES header date: the same model gives the same bytes.
+FIXED_TIMESTAMP = "2000-01-01T00:00:00"
 
 
 def _subshapes(shape: TopoDS_Shape, kind, cast) -> list:
@@ -161,8 +163,53 @@ def _xcaf_document(shape: TopoDS_Shape, name: str, face_names: list[tuple[str, T
     return doc
 
 
+def stamp_step_header(model, name: str) -> None:
+    """File name ``name``, the fixed timestamp and bonecad as the originating system in a STEP model's header."""
+    from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
+    from OCP.TCollection import TCollection_HAsciiString
+
+    from .. import __version__
+
+    header = APIHeaderSection_MakeHeader(model)
+    if not header.IsDone():
+        header = APIHeaderSection_MakeHeader(0)
+        header.Apply(model)
+    header.SetName(TCollection_HAsciiString(name))
+    header.SetTimeStamp(TCollection_HAsciiString(FIXED_TIMESTAMP))
+    header.SetOriginatingSystem(TCollection_HAsciiString(f"bonecad {__version__}"))
+
+
+def step_settings() -> None:
+    """STEP output in mm."""
+    from OCP.Interface import Interface_Static
+
+    Interface_Static.SetCVal_s("write.step.unit", "MM")
+
+
+def iges_settings() -> None:
+    """IGES 5.3 output in mm with faces as B-rep (MSBO) entities."""
+    from OCP.IGESControl import IGESControl_Controller
+    from OCP.Interface import Interface_Static
+
+    IGESControl_Controller.Init_s()
+    Interface_Static.SetCVal_s("write.iges.unit", "MM")
+    Interface_Static.SetIVal_s("write.iges.brep.mode", 1)
+
+
+def stamp_iges_header(writer) -> None:
+    """The fixed timestamp as the file's and the last change's date in an IGES writer's global section."""
+    from OCP.TCollection import TCollection_HAsciiString
+
+    date = TCollection_HAsciiString(FIXED_TIMESTAMP.replace("-", "").replace("T", ".").replace(":", ""))
+    model = writer.Model()
+    section = model.GlobalSection()
+    section.SetDate(date)
+    section.SetLastChangeDate(date)
+    model.SetGlobalSection(section)
+
+
 @contextmanager
-def _quiet():
+def quiet():
     """Only failures from OpenCascade's console messenger while writing (it prints transfer statistics)."""
     from OCP.Message import Message, Message_Gravity
 
@@ -181,15 +228,15 @@ def write_named_step(shape: TopoDS_Shape, path: str | Path, name: str, face_name
     """STEP AP214 in mm, atomically: the product and solid named ``name``, every face by its
     region (``ADVANCED_FACE('distal', ...)``, which STEP readers show as face names)."""
     from OCP.IFSelect import IFSelect_RetDone
-    from OCP.Interface import Interface_Static
     from OCP.STEPConstruct import STEPConstruct
     from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
     from OCP.TCollection import TCollection_HAsciiString
 
     path = Path(path)
-    with _quiet():
-        Interface_Static.SetCVal_s("write.step.unit", "MM")
+    with quiet():
+        step_settings()
         writer = STEPControl_Writer()
+        stamp_step_header(writer.Model(), name)
         if writer.Transfer(shape, STEPControl_AsIs) != IFSelect_RetDone:
             raise KernelError(f"OpenCascade could not translate the shape for STEP file {path}")
         finder = writer.WS().TransferWriter().FinderProcess()
@@ -207,19 +254,16 @@ def write_named_step(shape: TopoDS_Shape, path: str | Path, name: str, face_name
 def write_named_iges(shape: TopoDS_Shape, path: str | Path, name: str, face_names: list[tuple[str, TopoDS_Face]]) -> Path:
     """IGES 5.3 (B-rep faces, mm) with names, atomically."""
     from OCP.IGESCAFControl import IGESCAFControl_Writer
-    from OCP.IGESControl import IGESControl_Controller
-    from OCP.Interface import Interface_Static
 
     path = Path(path)
-    IGESControl_Controller.Init_s()
-    Interface_Static.SetCVal_s("write.iges.unit", "MM")
-    Interface_Static.SetIVal_s("write.iges.brep.mode", 1)
+    iges_settings()
     doc = _xcaf_document(shape, name, face_names)
     writer = IGESCAFControl_Writer()
     writer.SetNameMode(True)
     if not writer.Transfer(doc):
         raise KernelError(f"OpenCascade could not translate the shape for IGES file {path}")
-    with _quiet(), staged_file(path) as tmp:
+    stamp_iges_header(writer)
+    with quiet(), staged_file(path) as tmp:
         if not writer.Write(str(tmp)):
             raise KernelError(f"OpenCascade could not write IGES file {path}")
     return path
