@@ -7,12 +7,13 @@ The Python API mirrors the pipeline, one function per stage::
 """
 from __future__ import annotations
 
+import importlib
+
 __version__ = "0.1.0"
 
 from .anatomy.frame import AnatomicalFrame, anatomical_frame
 from .config import load_config
 from .errors import BonecadError, FitError, InputError, KernelError
-from .imaging.phantom_tibia import TibiaParameters, phantom_tibia
 from .mesh.bone_mesh import BoneMesh
 from .mesh.intake import load_bone, prepare_bone
 from .pipeline import Reconstruction, reconstruct
@@ -33,3 +34,12 @@ __all__ = [
     "Reconstruction",
     "reconstruct",
 ]
+
+#: imported on first use: the CT stack (scipy.ndimage) is not needed for a mesh
+_LAZY = {"TibiaParameters": ".imaging.phantom_tibia", "phantom_tibia": ".imaging.phantom_tibia"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module 'bonecad' has no attribute {name!r}")

@@ -322,7 +322,7 @@ def _build_models(
 
         with timings.stage("T-spline model"):
             tspline = build_tspline_model(bone, frame, contours, config=config,
-                                          compare_tensor_product=compare_tensor_product)
+                                          compare_tensor_product=compare_tensor_product, jobs=jobs)
             write_tspline(tspline, stage_dir)
         result.models["tspline"] = tspline
         with timings.stage("T-spline analysis"):

@@ -212,29 +212,36 @@ def render_tessellation_normals(
     height_px: int = 800,
     seed: int = 0,
 ) -> list[Raster]:
-    """Views of a tessellated shape with exact surface normals per sample (for zebra); values = face index."""
+    """Views of a tessellated shape with exact surface normals per pixel (for zebra).
+
+    The tessellation is splatted with each sample's face and (u, v); the exact
+    normal is then evaluated once per visible pixel (not per sample: about half
+    the samples end up hidden or behind others). values = (face index, u, v).
+    """
     frames = [screen_axes(frame, v) for v in views]
     bounds = [_view_bounds(tess.vertices, a) for a in frames]
     pixel = min((b[3] - b[2]) / height_px for b in bounds)
     samples = _dense_samples(tess.vertices, tess.triangles, pixel, 2.0, seed)
     tri = tess.triangles[samples.triangle]
     normals = np.einsum("nk,nkj->nj", samples.barycentric, tess.normals[tri])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)  # kept where no surface
     uv = np.einsum("nk,nkj->nj", samples.barycentric, tess.uv[tri])
     face = tess.triangle_face[samples.triangle]
+    values = np.column_stack([face.astype(float), uv])
+    rasters = [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
     sset = tess.surface_set
-    has = np.flatnonzero(sset.group[face] >= 0)
-    for lo in range(0, len(has), 262144):
-        part = has[lo : lo + 262144]
-        _, su, sv = sset.evaluate(face[part], uv[part, 0], uv[part, 1])
+    for raster, axes in zip(rasters, frames):
+        rows, cols = np.nonzero(raster.mask)
+        pix_face = raster.values[rows, cols, 0].astype(np.int64)
+        has = np.flatnonzero(sset.group[pix_face] >= 0)
+        f = pix_face[has]
+        _, su, sv = sset.evaluate(f, raster.values[rows[has], cols[has], 1], raster.values[rows[has], cols[has], 2])
         n = np.cross(su, sv)
         size = np.linalg.norm(n, axis=1, keepdims=True)
         good = size[:, 0] > 1e-12
-        n = n / np.maximum(size, 1e-300)
-        n = np.where(tess.reversed_faces[face[part]][:, None], -n, n)
-        normals[part[good]] = n[good]
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-    values = face[:, None].astype(float)
-    return [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
+        n = np.where(tess.reversed_faces[f][:, None], -n, n) / np.maximum(size, 1e-300)
+        raster.normal[rows[has[good]], cols[has[good]]] = n[good] @ axes.T
+    return rasters
 
 
 def zebra_image(raster: Raster, *, stripes: int = 40, stripe_axis: str = "horizontal") -> np.ndarray:

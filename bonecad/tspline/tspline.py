@@ -113,6 +113,17 @@ class TSpline:
         q = self.extraction.operator @ pw
         return q.reshape(-1, 4, 4, 4)
 
+    @cached_property
+    def polynomial(self) -> bool:
+        """All weights 1: the surface is polynomial (as every fitted T-spline is)."""
+        return bool(np.all(self.weights == 1.0))
+
+    @cached_property
+    def _evaluation_patches(self) -> np.ndarray:
+        """Contiguous Bezier patches for ``evaluate``: (n_e, 4, 4, 3) points of a polynomial
+        surface (its weight row is 1: no quotient rule), else the homogeneous (n_e, 4, 4, 4)."""
+        return np.ascontiguousarray(self.bezier_homogeneous[..., :3]) if self.polynomial else self.bezier_homogeneous
+
     @property
     def bezier_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Rational Bezier patches: ((n_e, 4, 4, 3) points in mm, (n_e, 4, 4) weights)."""
@@ -132,8 +143,9 @@ class TSpline:
         n = len(elem)
         bu = bernstein3(u, order)
         bv = bernstein3(v, order)
-        patches = self.bezier_homogeneous
-        hom = {(a, b): np.empty((n, 4)) for a in range(order + 1) for b in range(order + 1 - a)}
+        patches = self._evaluation_patches
+        width = patches.shape[-1]
+        hom = {(a, b): np.empty((n, width)) for a in range(order + 1) for b in range(order + 1 - a)}
         for lo in range(0, n, _BATCH):
             sl = slice(lo, min(lo + _BATCH, n))
             q = patches[elem[sl]]  # (m, 4, 4, 4): a cache-sized batch of gathered patches
@@ -147,7 +159,7 @@ class TSpline:
             for (a, b), h in hom.items():
                 if a or b:
                     h *= (hs**a * ht**b)[:, None]  # d/ds = (1 / element width) d/du
-        d = _rational_derivatives(hom, order)
+        d = hom if self.polynomial else _rational_derivatives(hom, order)
         if order == 0:
             return SurfaceSample(d[(0, 0)])
         if order == 1:

@@ -30,6 +30,7 @@ from bonecad.config import load_config
 from bonecad.curves.contours import ContourSet, bone_coordinates
 from bonecad.errors import KernelError
 from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.parallel import JobGroup
 from bonecad.tspline import TSpline, to_dict
 
 from .caps import ApexCap, build_cap
@@ -198,12 +199,15 @@ def build_tspline_model(
     *,
     config: dict | None = None,
     compare_tensor_product: bool | None = None,
+    jobs: JobGroup | None = None,
 ) -> TSplineModel:
     """Skin, fit, refine, cap and convert: the T-spline model of a tibia.
 
     config : a full configuration (``load_config()``); its [tspline] section is used.
     compare_tensor_product : fit the tensor-product comparison surface too
         (default: the ``compare_tensor_product`` setting); it about doubles the time.
+    jobs : background jobs (``bonecad.parallel``): the mesh's local noise is then
+        measured on the second core while the first parameters are found.
     Raises FitError when a stage cannot produce a usable surface, KernelError
     when OpenCascade cannot make a valid closed solid of it.
     """
@@ -231,9 +235,11 @@ def build_tspline_model(
     timings["skin"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    s0, t0, _ = initial_parameters(ts0, pts)
     # a staircase (voxel-mask mesh) shows its lattice in scanner coordinates
-    noise = local_noise_mm(pts, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
+    noise_job = (jobs or JobGroup(background=False)).start(
+        local_noise_mm, pts, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
+    s0, t0, _ = initial_parameters(ts0, pts)
+    noise = noise_job.result()[0]
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
                        constraints=rings, noise=noise)
     timings["fit"] = time.perf_counter() - clock
