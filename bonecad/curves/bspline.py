@@ -14,7 +14,6 @@ from functools import cached_property
 import numpy as np
 from scipy import sparse
 from scipy.interpolate import BSpline
-from scipy.sparse.linalg import spsolve
 
 from ..errors import FitError
 
@@ -108,11 +107,11 @@ def _fairness(count: int, periodic: bool) -> sparse.csr_matrix:
 
 
 def _solve(a: sparse.csr_matrix, points: np.ndarray, weights: np.ndarray, fairness: sparse.csr_matrix) -> np.ndarray:
-    aw = a.multiply(weights[:, None]).tocsr()
-    normal = (aw.T @ a + fairness).tocsc()
-    rhs = aw.T @ points
-    solution = spsolve(normal.tocsc(), rhs)
-    return np.asarray(solution).reshape(a.shape[1], 3)
+    """Weighted least squares with fairness: (A^T W A + F) P = A^T W X. Dense: a curve has at most a
+    few hundred control points, where scipy.sparse's set-up costs more than the whole dense solve."""
+    dense = a.toarray()
+    aw = dense * weights[:, None]
+    return np.linalg.solve(aw.T @ dense + fairness.toarray(), aw.T @ points)
 
 
 def _solve_tangent_distance(
@@ -126,7 +125,7 @@ def _solve_tangent_distance(
     """One tangent-distance step (Wang, Pottmann & Liu 2006, "Fitting B-spline curves to point clouds by
     curvature-based squared distance minimization", ACM TOG 25(2)): errors are measured across the
     curve at each foot point, plus ``tangential`` times along it, so the fit converges in a few
-    steps where plain parameter correction crawls."""
+    steps where plain parameter correction crawls. Dense 3n x 3n system (see ``_solve``)."""
     coo = a.tocoo()
     m, n = a.shape
     order = np.lexsort((coo.col, coo.row))
@@ -142,14 +141,13 @@ def _solve_tangent_distance(
     rows = 3 * cols[:, :, None, None, None] + np.arange(3)[None, None, None, :, None]
     columns = 3 * cols[:, None, :, None, None] + np.arange(3)[None, None, None, None, :]
     shape = (m, per_row, per_row, 3, 3)
-    system = sparse.csc_matrix(
-        (data.ravel(), (np.broadcast_to(rows, shape).ravel(), np.broadcast_to(columns, shape).ravel())),
-        shape=(3 * n, 3 * n),
-    ) + sparse.kron(fairness, sparse.identity(3)).tocsc()
+    flat = (np.broadcast_to(rows, shape) * (3 * n) + np.broadcast_to(columns, shape)).ravel()
+    system = np.bincount(flat, data.ravel(), minlength=(3 * n) ** 2).reshape(3 * n, 3 * n)
+    system += np.kron(fairness.toarray(), np.eye(3))
     mx = np.einsum("irc,ic->ir", metric, points)
     rhs = np.zeros((n, 3))
     np.add.at(rhs, cols.ravel(), (vals[:, :, None] * mx[:, None, :]).reshape(-1, 3))
-    return np.asarray(spsolve(system, rhs.ravel())).reshape(n, 3)
+    return np.linalg.solve(system, rhs.ravel()).reshape(n, 3)
 
 
 def project_parameters(curve: BSplineCurve, points: np.ndarray, u: np.ndarray, iterations: int = 4) -> np.ndarray:
