@@ -61,3 +61,18 @@ def test_a_job_left_running_when_the_block_fails_is_stopped(tmp_path):
             raise RuntimeError("parent failed")
     time.sleep(3.5)
     assert not target.exists()
+
+
+def _blas_threads() -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+
+@pytest.mark.skipif(not parallel.can_fork(), reason="fork is not available on this platform")
+def test_blas_is_single_threaded_while_background_jobs_share_the_cores():
+    before = _blas_threads()
+    with parallel.jobs(True) as group:
+        assert set(_blas_threads()) == {1}
+        assert set(group.start(_blas_threads).result()[0]) == {1}  # the forked child too
+    assert _blas_threads() == before
