@@ -74,5 +74,8 @@ def main(paths: list[Path]) -> None:
 
 
 if __name__ == "__main__":
+    from threadpoolctl import threadpool_limits
+
     args = [Path(a) for a in sys.argv[1:]] or sorted(DATA.glob("*.stl"))
-    main(args)
+    with threadpool_limits(limits=1, user_api="blas"):  # as in `reconstruct` (bonecad.parallel): same figures
+        main(args)

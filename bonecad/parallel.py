@@ -8,10 +8,13 @@ job in the process itself; where ``fork`` is unavailable (Windows, macOS
 defaults) or switched off (``[pipeline] background_jobs = false``), the job
 runs at once, in the process itself.
 
-While background jobs run, BLAS (OpenBLAS under numpy) is held to one thread
-per process: the processes already fill the two cores, and a second BLAS
-thread per process only spins against the other process (measured on TLEM2:
-44 s of CPU and 27 s wall with two BLAS threads, 30 s and 20.5 s with one).
+Inside a group of jobs BLAS (OpenBLAS under numpy) runs one thread per
+process: the processes already fill the two cores, and a second BLAS thread
+per process only spins against the other process (measured on TLEM2: 44 s of
+CPU and 27 s wall with two BLAS threads, 30 s and 20.5 s with one). It is one
+thread with background jobs off too, so both ways give the same numbers (BLAS
+sums in another order with more threads, and a fit to noisy MRI data can
+refine differently on a last-digit difference).
 """
 from __future__ import annotations
 
@@ -19,7 +22,7 @@ import multiprocessing
 import pickle
 import time
 import traceback
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
 
@@ -103,11 +106,11 @@ def jobs(background: bool = True) -> Iterator[JobGroup]:
     """A group of jobs whose children are stopped when the block ends before their results are taken
     (an error in the parent: no child goes on writing into an output folder that is being removed).
 
-    With background jobs, BLAS runs single-threaded inside the block (children inherit it)."""
+    BLAS runs single-threaded inside the block (children inherit it)."""
     from threadpoolctl import threadpool_limits
 
     group = JobGroup(background)
-    with threadpool_limits(limits=1, user_api="blas") if group.background else nullcontext():
+    with threadpool_limits(limits=1, user_api="blas"):
         try:
             yield group
         finally:

@@ -70,9 +70,10 @@ def _blas_threads() -> list[int]:
 
 
 @pytest.mark.skipif(not parallel.can_fork(), reason="fork is not available on this platform")
-def test_blas_is_single_threaded_while_background_jobs_share_the_cores():
+@pytest.mark.parametrize("background", [True, False])
+def test_blas_is_single_threaded_in_a_group_of_jobs(background):
     before = _blas_threads()
-    with parallel.jobs(True) as group:
+    with parallel.jobs(background) as group:
         assert set(_blas_threads()) == {1}
-        assert set(group.start(_blas_threads).result()[0]) == {1}  # the forked child too
+        assert set(group.start(_blas_threads).result()[0]) == {1}  # a forked child too
     assert _blas_threads() == before
