@@ -142,9 +142,9 @@ def face_is_reversed(face: TopoDS_Face) -> bool:
     return face.Orientation() == TopAbs_REVERSED
 
 
-def _xcaf_document(shape: TopoDS_Shape, name: str, face_names: list[tuple[str, TopoDS_Face]]):
+def xcaf_document():
+    """An empty XCAF document in mm and its shape tool (automatic naming off: names are ours)."""
     from OCP.TCollection import TCollection_ExtendedString
-    from OCP.TDataStd import TDataStd_Name
     from OCP.TDocStd import TDocStd_Document
     from OCP.XCAFApp import XCAFApp_Application
     from OCP.XCAFDoc import XCAFDoc_DocumentTool
@@ -153,6 +153,15 @@ def _xcaf_document(shape: TopoDS_Shape, name: str, face_names: list[tuple[str, T
     XCAFApp_Application.GetApplication_s().InitDocument(doc)
     XCAFDoc_DocumentTool.SetLengthUnit_s(doc, 0.001)
     tool = XCAFDoc_DocumentTool.ShapeTool_s(doc.Main())
+    tool.SetAutoNaming_s(False)
+    return doc, tool
+
+
+def _xcaf_document(shape: TopoDS_Shape, name: str, face_names: list[tuple[str, TopoDS_Face]]):
+    from OCP.TCollection import TCollection_ExtendedString
+    from OCP.TDataStd import TDataStd_Name
+
+    doc, tool = xcaf_document()
     label = tool.AddShape(shape, False)
     TDataStd_Name.Set_s(label, TCollection_ExtendedString(name))
     for face_name, face in face_names:
@@ -253,15 +262,19 @@ def write_named_step(shape: TopoDS_Shape, path: str | Path, name: str, face_name
 
 def write_named_iges(shape: TopoDS_Shape, path: str | Path, name: str, face_names: list[tuple[str, TopoDS_Face]]) -> Path:
     """IGES 5.3 (B-rep faces, mm) with names, atomically."""
+    return write_xcaf_iges(_xcaf_document(shape, name, face_names), path)
+
+
+def write_xcaf_iges(doc, path: str | Path) -> Path:
+    """IGES 5.3 (B-rep faces, mm) of an XCAF document, its names on the entities, atomically."""
     from OCP.IGESCAFControl import IGESCAFControl_Writer
 
     path = Path(path)
     iges_settings()
-    doc = _xcaf_document(shape, name, face_names)
     writer = IGESCAFControl_Writer()
     writer.SetNameMode(True)
     if not writer.Transfer(doc):
-        raise KernelError(f"OpenCascade could not translate the shape for IGES file {path}")
+        raise KernelError(f"OpenCascade could not translate the shapes for IGES file {path}")
     stamp_iges_header(writer)
     with quiet(), staged_file(path) as tmp:
         if not writer.Write(str(tmp)):

@@ -83,17 +83,12 @@ def _assembly(tree: Tree):
     """An XCAF document (mm) holding ``tree`` as a named assembly."""
     from OCP.TCollection import TCollection_ExtendedString
     from OCP.TDataStd import TDataStd_Name
-    from OCP.TDocStd import TDocStd_Document
     from OCP.TopAbs import TopAbs_VERTEX
     from OCP.TopLoc import TopLoc_Location
-    from OCP.XCAFApp import XCAFApp_Application
-    from OCP.XCAFDoc import XCAFDoc_DocumentTool
 
-    doc = TDocStd_Document(TCollection_ExtendedString("MDTV-XCAF"))
-    XCAFApp_Application.GetApplication_s().InitDocument(doc)
-    XCAFDoc_DocumentTool.SetLengthUnit_s(doc, 0.001)
-    tool = XCAFDoc_DocumentTool.ShapeTool_s(doc.Main())
-    tool.SetAutoNaming_s(False)
+    from .brep import xcaf_document
+
+    doc, tool = xcaf_document()
 
     def add(node: Tree):
         name, content = node
@@ -140,21 +135,9 @@ def write_step(tree: Tree, path: str | Path) -> Path:
 
 def write_iges(tree: Tree, path: str | Path) -> Path:
     """IGES 5.3 (B-rep faces, mm) with entity names, atomically."""
-    from OCP.IGESCAFControl import IGESCAFControl_Writer
+    from .brep import write_xcaf_iges
 
-    from .brep import iges_settings, quiet, stamp_iges_header
-
-    path = Path(path)
-    iges_settings()
-    writer = IGESCAFControl_Writer()
-    writer.SetNameMode(True)
-    if not writer.Transfer(_assembly(tree)):
-        raise KernelError(f"OpenCascade could not translate the shapes for IGES file {path}")
-    stamp_iges_header(writer)
-    with quiet(), staged_file(path) as tmp:
-        if not writer.Write(str(tmp)):
-            raise KernelError(f"OpenCascade could not write IGES file {path}")
-    return path
+    return write_xcaf_iges(_assembly(tree), path)
 
 
 def read_step(path: str | Path):
