@@ -39,7 +39,9 @@ class Job:
             return
         ctx = multiprocessing.get_context("fork")
         self._receive, send = ctx.Pipe(duplex=False)
-        self._process = ctx.Process(target=_run, args=(send, fn, args, kwargs), daemon=True)
+        # not a daemon: a job may start jobs of its own (the frame-and-curves job fits the
+        # proximal curves beside the distal ones); ``jobs`` stops every child it started
+        self._process = ctx.Process(target=_run, args=(send, fn, args, kwargs), daemon=False)
         self._process.start()
         send.close()
 

@@ -244,21 +244,23 @@ def reconstruct_bone(
     timings = timings if timings is not None else Timings()
     out_dir = Path(out_dir)
     with staged_output(out_dir) as stage_dir, parallel.jobs(background) as jobs:
-        with timings.stage("anatomical frame"):
-            frame = anatomical_frame(
-                bone, config=config, distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm
-            )
-        result = Reconstruction(bone=bone, frame=frame, timings_s=timings, out_dir=out_dir)
+        boundaries = {"distal_boundary_mm": distal_boundary_mm, "proximal_boundary_mm": proximal_boundary_mm}
         if until == "frame":
+            with timings.stage("anatomical frame"):
+                frame = anatomical_frame(bone, config=config, **boundaries)
             with timings.stage("reference entities to STEP"):
                 write_step(("reference_entities", frame_entities(frame)), stage_dir / "curves.step")
+            result = Reconstruction(bone=bone, frame=frame, timings_s=timings, out_dir=out_dir)
         else:
+            # the frame and the curves on the second core while this process imports, once, what the
+            # models need (the children forked later inherit it instead of importing it again)
+            front = jobs.start(_frame_and_curves, bone, config, jobs, **boundaries)
             with timings.stage("OpenCascade and matplotlib imports"):
-                # once, here, so the children forked below inherit them instead of importing them again
                 importlib.import_module("bonecad.io.brep")
                 importlib.import_module("bonecad.analysis.render")
-            with timings.stage("contour curves"):
-                result.contours = contour_curves(bone, frame, config=config, jobs=jobs)
+            frame, contours, front_timings = front.result()[0]
+            timings.update(front_timings)
+            result = Reconstruction(bone=bone, frame=frame, contours=contours, timings_s=timings, out_dir=out_dir)
             # the second core: curves.step/.iges/.png, then the NURBS model, its files and analysis
             side = jobs.start(_curve_files_and_nurbs, result.contours, bone, stage_dir,
                               nurbs=until == "models" and "nurbs" in models, apex_fill=apex_fill, config=config)
@@ -276,6 +278,18 @@ def reconstruct_bone(
     result.timings_s = dict(timings)
     result.wall_s = timings.wall_s()
     return result
+
+
+def _frame_and_curves(bone: BoneMesh, config: dict, jobs: parallel.JobGroup, *, distal_boundary_mm: float | None,
+                      proximal_boundary_mm: float | None) -> tuple[AnatomicalFrame, ContourSet, dict]:
+    """The anatomical frame and the contour curves, with their stage times (picklable: a background job)."""
+    timings = Timings()
+    with timings.stage("anatomical frame"):
+        frame = anatomical_frame(bone, config=config, distal_boundary_mm=distal_boundary_mm,
+                                 proximal_boundary_mm=proximal_boundary_mm)
+    with timings.stage("contour curves"):
+        contours = contour_curves(bone, frame, config=config, jobs=jobs)
+    return frame, contours, dict(timings)
 
 
 def _curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path, *, nurbs: bool, apex_fill,

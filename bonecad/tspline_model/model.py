@@ -7,7 +7,7 @@ Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
 1. parameterise and skin the three contour-curve sets on one T-mesh
    (:mod:`.skinning`);
 2. fit the T-spline to every mesh vertex outside the apex holes (area
-   weights), with parameter correction and error-driven local refinement
+   weights; on a coarse mesh its edge midpoints too), with parameter correction and error-driven local refinement
    (:mod:`.fit`), until the tolerances hold or the control-point budget is hit;
 3. fit a tensor-product B-spline to the same points and tolerances by
    refining whole knot lines, for the control-point comparison;
@@ -30,6 +30,7 @@ from bonecad.config import load_config
 from bonecad.curves.contours import ContourSet, bone_coordinates
 from bonecad.errors import KernelError
 from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.mesh.sampling import fit_samples
 from bonecad.parallel import JobGroup
 from bonecad.tspline import TSpline, to_dict
 
@@ -139,13 +140,6 @@ def tolerances(settings: dict) -> FitTolerances:
     )
 
 
-def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(n,) mm^2: a third of the area of each vertex's triangles."""
-    tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    return np.bincount(faces.ravel(), np.repeat(area / 3.0, 3), minlength=len(vertices))
-
-
 def hole_masks(vertices: np.ndarray, par: Parameterisation, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Mesh vertices inside the distal and the proximal apex hole (bone coordinates)."""
     distal = (vertices[:, 2] < par.z_distal) & (np.linalg.norm(vertices[:, :2], axis=1) < radius_mm)
@@ -219,8 +213,9 @@ def build_tspline_model(
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
-    vertices, faces = bone_coordinates(bone, frame)
-    weights = vertex_areas(vertices, faces)
+    mesh_vertices, faces = bone_coordinates(bone, frame)
+    # a coarse mesh is sampled between its vertices too (edge midpoints), where its facets are measured
+    vertices, weights, parents = fit_samples(mesh_vertices, faces, float(st["fit_point_spacing_mm"]))
     par = parameterisation(contours)
     radius = float(config["curves"]["apex_hole_radius_mm"])
     hole_d, hole_p = hole_masks(vertices, par, radius)
@@ -237,9 +232,9 @@ def build_tspline_model(
     clock = time.perf_counter()
     # a staircase (voxel-mask mesh) shows its lattice in scanner coordinates
     noise_job = (jobs or JobGroup(background=False)).start(
-        local_noise_mm, pts, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
+        local_noise_mm, mesh_vertices, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
     s0, t0, _ = initial_parameters(ts0, pts)
-    noise = noise_job.result()[0]
+    noise = noise_job.result()[0][parents[keep]].mean(axis=1)
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
                        constraints=rings, noise=noise)
     timings["fit"] = time.perf_counter() - clock

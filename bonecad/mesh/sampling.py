@@ -1,0 +1,59 @@
+"""Points that stand for a triangle mesh's surface in a least-squares fit.
+
+A fit to the vertices alone integrates the distance with one point per
+vertex; on a coarse mesh (edges of a few mm) that misses what the facets do
+between the vertices, where the surface's deviation is measured too. Such a
+mesh is subdivided at its edge midpoints (each triangle into four, same
+surface) until its edges are short enough.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(n,) mm^2: a third of the area of each vertex's triangles."""
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return np.bincount(faces.ravel(), np.repeat(area / 3.0, 3), minlength=len(vertices))
+
+
+def median_edge_mm(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Median length of the triangles' edges (mm)."""
+    tri = vertices[faces]
+    return float(np.median(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)))
+
+
+def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each triangle split into four at its edge midpoints (the same surface, half the edge length).
+
+    Returns (vertices (n + m, 3), faces (4 f, 3), parents (n + m, 2)): the
+    original vertices come first, each its own parent twice; a midpoint's
+    parents are its edge's two ends.
+    """
+    n = len(vertices)
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+    mid = n + inverse.reshape(-1, 3)  # midpoints of edges (a b), (b c), (c a) of each face
+    a, b, c = faces.T
+    ab, bc, ca = mid.T
+    new_faces = np.concatenate([np.stack(f, axis=1) for f in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    new_vertices = np.vstack([vertices, 0.5 * (vertices[unique[:, 0]] + vertices[unique[:, 1]])])
+    parents = np.vstack([np.repeat(np.arange(n)[:, None], 2, axis=1), unique])
+    return new_vertices, new_faces, parents
+
+
+def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh's vertices, and midpoints of its edges until the median edge is at most ``spacing_mm``.
+
+    Returns (points (k, 3), area weights (k,) mm^2, parents (k, 2)): two
+    original vertices each point lies between (both the same for an original
+    vertex; the ends of the original edge for a midpoint, and of a part of it
+    after further splits), so per-vertex figures carry over to the new points.
+    """
+    parents = np.repeat(np.arange(len(vertices))[:, None], 2, axis=1)
+    while median_edge_mm(vertices, faces) > spacing_mm:
+        vertices, faces, step = midpoint_subdivision(vertices, faces)
+        parents = np.stack([parents[step[:, 0], 0], parents[step[:, 1], 1]], axis=1)
+    return vertices, vertex_areas(vertices, faces), parents
