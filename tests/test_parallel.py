@@ -77,3 +77,15 @@ def test_blas_is_single_threaded_in_a_group_of_jobs(background):
         assert set(_blas_threads()) == {1}
         assert set(group.start(_blas_threads).result()[0]) == {1}  # a forked child too
     assert _blas_threads() == before
+
+
+def _nested(values: np.ndarray) -> dict:
+    with parallel.jobs(True) as group:
+        return group.start(_stats, values, scale=3.0).result()[0]
+
+
+@pytest.mark.skipif(not parallel.can_fork(), reason="fork is not available on this platform")
+def test_a_background_job_may_start_jobs_of_its_own():
+    with parallel.jobs(True) as group:
+        result, _ = group.start(_nested, np.arange(10.0)).result()
+    assert result["sum"] == 135.0 and result["pid"] != os.getpid()

@@ -9,6 +9,7 @@ surface) until its edges are short enough.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -44,16 +45,16 @@ def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
 
 
 def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
     """The mesh's vertices, and midpoints of its edges until the median edge is at most ``spacing_mm``.
 
-    Returns (points (k, 3), area weights (k,) mm^2, parents (k, 2)): two
-    original vertices each point lies between (both the same for an original
-    vertex; the ends of the original edge for a midpoint, and of a part of it
-    after further splits), so per-vertex figures carry over to the new points.
+    Returns (points (k, 3), area weights (k,) mm^2, carry (k, n) sparse):
+    each point's row of ``carry`` holds the weights of the original vertices
+    it is the average of (rows sum to 1; an original vertex is itself), so
+    ``carry @ values`` carries per-vertex figures over to the points.
     """
-    parents = np.repeat(np.arange(len(vertices))[:, None], 2, axis=1)
+    carry = sp.identity(len(vertices), format="csr")
     while median_edge_mm(vertices, faces) > spacing_mm:
-        vertices, faces, step = midpoint_subdivision(vertices, faces)
-        parents = np.stack([parents[step[:, 0], 0], parents[step[:, 1], 1]], axis=1)
-    return vertices, vertex_areas(vertices, faces), parents
+        vertices, faces, parents = midpoint_subdivision(vertices, faces)
+        carry = (0.5 * (carry[parents[:, 0]] + carry[parents[:, 1]])).tocsr()
+    return vertices, vertex_areas(vertices, faces), carry

@@ -215,7 +215,7 @@ def build_tspline_model(
 
     mesh_vertices, faces = bone_coordinates(bone, frame)
     # a coarse mesh is sampled between its vertices too (edge midpoints), where its facets are measured
-    vertices, weights, parents = fit_samples(mesh_vertices, faces, float(st["fit_point_spacing_mm"]))
+    vertices, weights, carry = fit_samples(mesh_vertices, faces, float(st["fit_point_spacing_mm"]))
     par = parameterisation(contours)
     radius = float(config["curves"]["apex_hole_radius_mm"])
     hole_d, hole_p = hole_masks(vertices, par, radius)
@@ -234,7 +234,7 @@ def build_tspline_model(
     noise_job = (jobs or JobGroup(background=False)).start(
         local_noise_mm, mesh_vertices, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
     s0, t0, _ = initial_parameters(ts0, pts)
-    noise = noise_job.result()[0][parents[keep]].mean(axis=1)
+    noise = (carry @ noise_job.result()[0])[keep]
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
                        constraints=rings, noise=noise)
     timings["fit"] = time.perf_counter() - clock

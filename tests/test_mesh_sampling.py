@@ -1,0 +1,36 @@
+"""Fit samples of a mesh: midpoint subdivision keeps the surface and carries per-vertex figures over."""
+import numpy as np
+import trimesh
+
+from bonecad.mesh.sampling import fit_samples, median_edge_mm, midpoint_subdivision, vertex_areas
+
+
+def _sphere(subdivisions: int = 1):
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=10.0)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def test_midpoint_subdivision_keeps_the_surface_and_names_each_new_vertex_s_edge():
+    vertices, faces = _sphere()
+    new_v, new_f, parents = midpoint_subdivision(vertices, faces)
+    assert len(new_f) == 4 * len(faces)
+    assert np.isclose(vertex_areas(new_v, new_f).sum(), vertex_areas(vertices, faces).sum(), rtol=1e-12)
+    n = len(vertices)
+    assert np.array_equal(new_v[:n], vertices) and np.array_equal(parents[:n, 0], np.arange(n))
+    assert np.allclose(new_v[n:], 0.5 * (vertices[parents[n:, 0]] + vertices[parents[n:, 1]]))
+    # a closed mesh stays closed: every edge has two faces
+    assert trimesh.Trimesh(new_v, new_f, process=False).is_watertight
+    assert np.isclose(median_edge_mm(new_v, new_f), 0.5 * median_edge_mm(vertices, faces), rtol=0.05)
+
+
+def test_fit_samples_split_a_coarse_mesh_until_its_edges_are_short_and_leave_a_fine_one_alone():
+    vertices, faces = _sphere()
+    coarse = median_edge_mm(vertices, faces)
+    points, weights, carry = fit_samples(vertices, faces, coarse / 3.0)
+    assert len(points) > 10 * len(vertices)  # two rounds of splitting
+    assert np.isclose(weights.sum(), vertex_areas(vertices, faces).sum(), rtol=1e-12)
+    # each point is the average its row of carry says, and per-vertex figures carry over linearly
+    assert np.allclose(np.asarray(carry.sum(axis=1)).ravel(), 1.0)
+    assert np.allclose(carry @ vertices, points)
+    same, _, identity = fit_samples(vertices, faces, coarse * 1.01)
+    assert np.array_equal(same, vertices) and np.array_equal(identity.toarray(), np.eye(len(vertices)))
