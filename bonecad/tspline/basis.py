@@ -105,13 +105,15 @@ def bezier_coefficients(knots: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.n
     return np.stack([fa[0], fa[0] + h * fa[1], fb[0] - h * fb[1], fb[0]], axis=1)
 
 
-def split_coefficients(knots: np.ndarray, k: float) -> tuple[float, float]:
-    """Boehm's split of one cubic basis function at a new knot k.
+def split_coefficients(knots: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boehm's split of cubic basis functions, each at a new knot k.
 
-    N[x0..x4] = c1 N[first five of x + {k}] + c2 N[last five], for x0 < k < x4
-    (ties with existing knot values allowed: index order decides).
+    knots : (n, 5) float; k : (n,) float with x0 < k < x4 per row x.
+    N[x0..x4] = c1 N[first five of x + {k}] + c2 N[last five] (ties with
+    existing knot values allowed: index order decides). Returns (n,) c1, c2.
     """
-    x = knots
-    c1 = 1.0 if k >= x[3] else (k - x[0]) / (x[3] - x[0])
-    c2 = 1.0 if k <= x[1] else (x[4] - k) / (x[4] - x[1])
+    x0, x1, _, x3, x4 = knots.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c1 = np.where(k >= x3, 1.0, (k - x0) / (x3 - x0))
+        c2 = np.where(k <= x1, 1.0, (x4 - k) / (x4 - x1))
     return c1, c2

@@ -26,7 +26,6 @@ new line crosses are touched, so the number of control points grows locally.
 """
 from __future__ import annotations
 
-from bisect import bisect_right
 from dataclasses import dataclass
 from typing import Literal, Sequence
 
@@ -256,104 +255,121 @@ def _make_suitable(edges: _Edges) -> TMesh:
     raise KernelError("refinement: analysis-suitability closure did not converge")
 
 
-def _crossings(mask: np.ndarray) -> list[list[int]]:
-    """Per row of a (R, L) bool mask, the sorted column indices where it holds."""
-    rows, cols = np.nonzero(mask)
-    bounds = np.searchsorted(rows, np.arange(mask.shape[0] + 1))
-    cols = cols.tolist()
-    return [cols[a:b] for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist())]
+def _keys(s_idx: np.ndarray, t_idx: np.ndarray) -> list[bytes]:
+    """Hashable keys of blending functions: the bytes of their 10 knot indices
+    (cheaper to build and hash than tuples)."""
+    rows = np.concatenate([s_idx, t_idx], axis=1).astype(np.int64, copy=False)
+    return rows.view("V80").ravel().tolist()
 
 
-def _first_missing(lines: list[int], knots: tuple, period: int | None) -> int | None:
-    """Smallest line strictly inside (knots[0], knots[4]) that is not one of ``knots``.
+def _knots(keys: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of ``_keys``: (n, 5) s and (n, 5) t knot indices."""
+    rows = np.frombuffer(b"".join(keys), dtype=np.int64).reshape(-1, 10)
+    return rows[:, :5], rows[:, 5:]
 
-    lines : sorted line indices crossing the ray (one period when ``period``
-    is given; the knots are unwrapped indices then, and so is the answer).
+
+def _normalised(s_idx: np.ndarray, s_n: int, periodic: bool) -> np.ndarray:
+    """Shift unwrapped s indices so each anchor's s-line lies in 0..S-1."""
+    if not periodic:
+        return s_idx
+    return s_idx - (s_idx[:, 2:3] // s_n) * s_n
+
+
+def _next_crossings(cross: np.ndarray, periodic: bool) -> np.ndarray:
+    """(R, L) int: per row and line x, the first line after x that crosses the
+    row (unwrapped past L when periodic; L or more when there is none)."""
+    n = cross.shape[1]
+    at_or_after = np.minimum.accumulate(np.where(cross, np.arange(n), n)[:, ::-1], axis=1)[:, ::-1]
+    after = np.hstack([at_or_after[:, 1:], np.full((len(cross), 1), n)])
+    if periodic:
+        after = np.where(after == n, at_or_after[:, :1] + n, after)
+    return after
+
+
+def _first_missing(knots: np.ndarray, after: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per knot vector, the smallest line crossing its ray strictly inside
+    (knots[0], knots[4]) that is not one of its knots.
+
+    knots : (n, 5) int (unwrapped indices in a periodic row); after : the
+    rows' ``_next_crossings``; rows : (n,) the row of each ray.
+    Returns (n,) gap (the line goes between knots[gap] and knots[gap + 1];
+    -1 where none is missing) and (n,) the line (unwrapped).
     """
-    lo, hi = knots[0], knots[4]
-    if period is None:
-        shifts = (0,)
-    else:
-        shifts = range((lo // period) * period, (hi // period) * period + 1, period)
-    for shift in shifts:
-        k = bisect_right(lines, lo - shift)
-        while k < len(lines):
-            x = lines[k] + shift
-            if x >= hi:
-                break
-            if x not in knots:
-                return x
-            k += 1
-    return None
+    n = after.shape[1]
+    base = knots[:, :4] // n * n
+    nxt = after[rows[:, None], knots[:, :4] - base] + base
+    inside = nxt < knots[:, 1:]
+    gap = np.where(inside.any(axis=1), inside.argmax(axis=1), -1)
+    return gap, nxt[np.arange(len(knots)), np.maximum(gap, 0)]
+
+
+def _split_table(mesh: TMesh, keys: list[bytes]) -> dict:
+    """The Boehm splits the mesh's rays demand, for ``keys`` and all they split into.
+
+    Per key: () when no knot is missing, else ((first part, c1), (second
+    part, c2)) for the first missing knot, s before t, smallest first.
+    """
+    s_n = mesh.shape[0]
+    after_s = _next_crossings(mesh.on_t.T, mesh.periodic)  # per t-line: s-lines crossing it
+    after_t = _next_crossings(mesh.on_s, False)  # per s-line: t-lines crossing it
+    table: dict = {}
+    todo = list(set(keys))
+    while todo:
+        sv, tv = _knots(todo)
+        gap_s, k_s = _first_missing(sv, after_s, tv[:, 2])
+        gap_t, k_t = _first_missing(tv, after_t, sv[:, 2])
+        in_s = np.flatnonzero(gap_s >= 0)
+        in_t = np.flatnonzero((gap_s < 0) & (gap_t >= 0))
+        table.update(dict.fromkeys(todo, ()))
+        children = []
+        for axis, idx in enumerate((in_s, in_t)):
+            knots = [sv[idx], tv[idx]]
+            old, k = knots[axis], (k_s, k_t)[axis][idx]
+            value = (mesh.s_value, mesh.t_value)[axis]
+            c1, c2 = split_coefficients(value(old), value(k))
+            six = np.sort(np.concatenate([old, k[:, None]], axis=1), axis=1)
+            halves = []
+            for part in (six[:, :5], six[:, 1:]):  # first and last five
+                knots[axis] = part
+                halves.append(_keys(_normalised(knots[0], s_n, mesh.periodic), knots[1]))
+            parents = [todo[i] for i in idx.tolist()]
+            table.update(zip(parents, zip(zip(halves[0], c1.tolist()), zip(halves[1], c2.tolist()))))
+            children += halves[0] + halves[1]
+        todo = list({k for k in children if k not in table})
+    return table
 
 
 def _split_pieces(mesh: TMesh, pieces: dict, todo: list) -> None:
     """Split pieces by Boehm insertion of every knot the mesh's rays demand.
 
-    The knot lines crossing each ray are looked up in per-row sorted lists
-    (bisection), so a piece costs O(log n) plus the few knots it checks.
+    Depth first from the end of ``todo``; a part that is a piece already
+    adds into it. The splits come from ``_split_table``; this order fixes the
+    rounding of the sums.
     """
-    s_n = mesh.shape[0]
-    rows_s = _crossings(mesh.on_t.T)  # per t-line: s-lines crossing it
-    rows_t = _crossings(mesh.on_s)  # per s-line: t-lines crossing it
-    period = s_n if mesh.periodic else None
-    s_vals = mesh.s_lines.tolist()
-    t_vals = mesh.t_lines.tolist()
-    s_period = mesh.s_period or 0.0
-
-    def s_value(i: int) -> float:
-        q, r = divmod(i, s_n)
-        return s_vals[r] + q * s_period
-
+    table = _split_table(mesh, todo)
+    todo = [key for key in todo if table[key]]
     while todo:
         key = todo.pop()
-        if key not in pieces:
+        coef = pieces.pop(key, None)
+        if coef is None:
             continue
-        sv, tv = key
-        k = _first_missing(rows_s[tv[2]], sv, period)
-        axis = 0
-        if k is None:
-            k = _first_missing(rows_t[sv[2] % s_n], tv, None)
-            axis = 1
-            if k is None:
-                continue
-        old = sv if axis == 0 else tv
-        if axis == 0:
-            vals = [s_value(x) for x in old]
-            kval = s_value(k)
-        else:
-            vals = [t_vals[x] for x in old]
-            kval = t_vals[k]
-        c1, c2 = split_coefficients(vals, kval)
-        six = tuple(sorted(old + (k,)))
-        coef = pieces.pop(key)
-        for part, c in ((six[:5], c1), (six[1:], c2)):
-            new_key = _normal_key((part, tv) if axis == 0 else (sv, part), s_n, mesh.periodic)
-            target = pieces.setdefault(new_key, {})
+        for part, c in table[key]:
+            target = pieces.setdefault(part, {})
             for a, v in coef.items():
                 target[a] = target.get(a, 0.0) + c * v
-            todo.append(new_key)
+            if table[part]:
+                todo.append(part)
 
 
-def _normal_key(key: tuple, s_n: int, periodic: bool) -> tuple:
-    """Shift unwrapped s indices so the anchor's s-line lies in 0..S-1."""
-    sv, tv = key
-    if not periodic:
-        return key
-    shift = (sv[2] // s_n) * s_n
-    return tuple(int(x - shift) for x in sv), tuple(tv)
+def _close(edges: _Edges, pieces: dict) -> tuple[TMesh, list[bytes]]:
+    """Grow the mesh and split the pieces until both agree (see module docstring).
 
-
-def _anchor_keys(mesh: TMesh) -> list:
-    s_idx, t_idx = mesh.anchor_knots
-    return [(tuple(a), tuple(b)) for a, b in zip(s_idx.tolist(), t_idx.tolist())]
-
-
-def _close(edges: _Edges, pieces: dict) -> TMesh:
-    """Grow the mesh and split the pieces until both agree (see module docstring)."""
+    Returns the mesh and its anchors' keys.
+    """
     for _ in range(_MAX_ROUNDS):
         mesh = _make_suitable(edges)
-        anchor_set = set(_anchor_keys(mesh))
+        anchors = _keys(*mesh.anchor_knots)
+        anchor_set = set(anchors)
         _split_pieces(mesh, pieces, [k for k in pieces if k not in anchor_set])
         stray = [k for k in pieces if k not in anchor_set]
         if not stray:
@@ -362,12 +378,17 @@ def _close(edges: _Edges, pieces: dict) -> TMesh:
                     f"refinement: {len(anchor_set) - len(pieces)} new control point(s) received no "
                     "contribution (the spline spaces are not nested)"
                 )
-            return mesh
-        s_n = mesh.shape[0]
-        for sv, tv in stray:
-            for m in range(5):
-                edges.cross_at(sv[m] % s_n, tv[2], "s")
-                edges.cross_at(sv[2] % s_n, tv[m], "t")
+            return mesh, anchors
+        # per stray and knot m, in this order: the point of its m-th s-knot on
+        # its t-line must lie on an s-line, that of its m-th t-knot on its
+        # s-line on a t-line; points that do already stay so (edges are only added)
+        sv, tv = _knots(stray)
+        i = np.stack([sv, np.repeat(sv[:, 2:3], 5, axis=1)], axis=2) % mesh.shape[0]
+        j = np.stack([np.repeat(tv[:, 2:3], 5, axis=1), tv], axis=2)
+        axis = np.broadcast_to(np.array(["s", "t"]), i.shape)
+        add = ~np.where(axis == "s", mesh.on_t[i, j], mesh.on_s[i, j])
+        for p, q, a in zip(i[add].tolist(), j[add].tolist(), axis[add].tolist()):
+            edges.cross_at(p, q, a)
     raise KernelError("refinement: did not converge")
 
 
@@ -413,18 +434,13 @@ def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float 
     old_sn = ts.mesh.shape[0]
     new_s = s_map[old_s % old_sn] + np.floor_divide(old_s, old_sn) * s_n
     new_t = t_map[old_t]
-    pieces = {
-        _normal_key((tuple(a), tuple(b)), s_n, mesh.periodic): {n: 1.0}
-        for n, (a, b) in enumerate(zip(new_s.tolist(), new_t.tolist()))
-    }
-    final = _close(edges, pieces)
+    pieces = {key: {n: 1.0} for n, key in enumerate(_keys(_normalised(new_s, s_n, mesh.periodic), new_t))}
+    final, anchors = _close(edges, pieces)
     final.validate()
-    rows, cols, vals = [], [], []
-    for r, key in enumerate(_anchor_keys(final)):
-        for c, v in pieces[key].items():
-            rows.append(r)
-            cols.append(c)
-            vals.append(v)
+    coefs = [pieces[key] for key in anchors]
+    rows = np.repeat(np.arange(len(coefs)), [len(c) for c in coefs])
+    cols = [a for c in coefs for a in c]
+    vals = [v for c in coefs for v in c.values()]
     n_new = len(final.anchors)
     matrix = sp.csr_matrix((vals, (rows, cols)), shape=(n_new, ts.n_control))
     pw = matrix @ np.hstack([ts.control_points * ts.weights[:, None], ts.weights[:, None]])
@@ -476,7 +492,8 @@ def _snap_s(mesh: TMesh, lo: float, hi: float, tol: float) -> tuple[int, int]:
     base = mesh.s_lines[0]
     lo_w = base + np.mod(lo - base, mesh.s_period)
     a = int(np.searchsorted(mesh.s_lines, lo_w + tol, side="right") - 1)
-    end = mesh.s_value(a) + (hi - lo) + (lo_w - mesh.s_value(a))
+    s_a = mesh.s_value(a)
+    end = s_a + (hi - lo) + (lo_w - s_a)
     cand = np.arange(a + 1, a + s_n + 1)
     b = int(cand[np.searchsorted(mesh.s_value(cand), end - tol)])
     return a, b

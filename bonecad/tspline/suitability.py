@@ -61,15 +61,14 @@ class SuitabilityReport:
 def t_junctions(mesh: TMesh) -> TJunctions:
     """Interior T-junctions of a mesh with their extensions."""
     left, right, down, up = mesh.edge_flags()
-    count = left.astype(int) + right + down + up
     s_n, t_n = mesh.shape
-    interior = np.ones((s_n, t_n), dtype=bool)
-    interior[:, [0, t_n - 1]] = False
+    # a vertex has edges both ways: an odd number of them is three
+    tj = mesh.vertices & (left ^ right ^ down ^ up)
+    tj[:, [0, t_n - 1]] = False
     if not mesh.periodic:
-        interior[[0, s_n - 1], :] = False
-    tj = mesh.vertices & (count == 3) & interior
-    pts = np.argwhere(tj)
-    i, j = pts[:, 0], pts[:, 1]
+        tj[[0, s_n - 1], :] = False
+    i, j = np.divmod(np.flatnonzero(tj), t_n)  # np.argwhere(tj), faster
+    pts = np.stack([i, j], axis=1)
     axis = np.where(left[i, j] & right[i, j], 1, 0)
     s_idx, t_idx = mesh.knot_indices(pts) if len(pts) else (np.zeros((0, 5), int), np.zeros((0, 5), int))
     plus = np.where(axis == 0, ~right[i, j], ~up[i, j])  # missing edge points to +
@@ -80,20 +79,29 @@ def t_junctions(mesh: TMesh) -> TJunctions:
 
 
 def check_suitability(mesh: TMesh) -> SuitabilityReport:
-    """Check that no s-extension (along a t-line) meets a t-extension (along an s-line)."""
+    """Check that no s-extension (along a t-line) meets a t-extension (along an s-line).
+
+    Only the s-extensions on the rows a t-extension spans are tested against
+    it (found by bisection in the s-extensions sorted by row).
+    """
     tj = t_junctions(mesh)
     hs = np.flatnonzero(tj.axis == 0)
     vs = np.flatnonzero(tj.axis == 1)
     s_n = mesh.shape[0]
-    row = tj.points[hs, 1][:, None]
-    a, b = tj.extent[hs, 0][:, None], tj.extent[hs, 1][:, None]
-    col = tj.points[vs, 0][None, :]
-    c, d = tj.extent[vs, 0][None, :], tj.extent[vs, 1][None, :]
+    # candidate pairs: each t-extension with the s-extensions on the rows it spans
+    row = tj.points[hs, 1]
+    by_row = np.argsort(row)
+    first = np.searchsorted(row[by_row], tj.extent[vs, 0], side="left")
+    count = np.searchsorted(row[by_row], tj.extent[vs, 1], side="right") - first
+    vi = np.repeat(np.arange(len(vs)), count)
+    hi = by_row[np.repeat(first - np.cumsum(count) + count, count) + np.arange(count.sum())]
+    a, b = tj.extent[hs[hi], 0], tj.extent[hs[hi], 1]
+    col = tj.points[vs[vi], 0]
     if mesh.periodic:
         col = a + np.mod(col - a, s_n)  # the copy of the column at or after a
-    meet = (c <= row) & (row <= d) & (a <= col) & (col <= b)
-    hi, vi = np.nonzero(meet)
-    pairs = np.stack([hs[hi], vs[vi]], axis=1)
+    meet = (a <= col) & (col <= b)
+    order = np.lexsort((vi[meet], hi[meet]))
+    pairs = np.stack([hs[hi[meet][order]], vs[vi[meet][order]]], axis=1)
     params = np.stack(
         [mesh.s_value(tj.points[pairs, 0]), mesh.t_lines[tj.points[pairs, 1]]], axis=-1
     ).reshape(-1, 2, 2)
