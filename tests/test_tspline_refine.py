@@ -92,10 +92,9 @@ def insert_segments_unclosed(ts, segs):
     from bonecad.tspline.refine import _Edges, _snap, _snap_s
 
     mesh = ts.mesh
-    ks = []
     for seg in segs:
-        mesh, k, _ = mesh.with_line(seg.axis, seg.value, 1e-12)
-        ks.append(k)
+        mesh = mesh.with_line(seg.axis, seg.value, 1e-12)[0]
+    ks = [mesh.with_line(seg.axis, seg.value, 1e-12)[1] for seg in segs]  # indices in the final grid
     edges = _Edges(mesh)
     for seg, k in zip(segs, ks):
         if seg.axis == "s":
@@ -103,6 +102,26 @@ def insert_segments_unclosed(ts, segs):
         else:
             edges.add_t_line(k, *_snap_s(mesh, seg.lo, seg.hi, 1e-12))
     return edges.snapshot()
+
+
+def test_every_requested_segment_lies_on_its_own_line_whatever_the_order():
+    """Lines inserted later below an earlier one shift its index: the segment must still land on it."""
+    ts = tube(12, 8, seed=3)
+    ext = ts.extraction
+    e = int(np.flatnonzero((ext.index_bounds[:, 0] == 6) & (ext.index_bounds[:, 2] == 5))[0])
+    (s0, s1), (t0, t1) = ext.s_bounds[e], ext.t_bounds[e]
+    # the higher s-line first, then one below it, then t-lines the same way
+    segs = [KnotSegment("s", s0 + 0.75 * (s1 - s0), t0, t1), KnotSegment("s", s0 + 0.25 * (s1 - s0), t0, t1),
+            KnotSegment("t", t0 + 0.75 * (t1 - t0), s0, s1), KnotSegment("t", t0 + 0.25 * (t1 - t0), s0, s1)]
+    mesh = insert_segments(ts, segs).tspline.mesh
+    for seg in segs:
+        k = int(np.flatnonzero(np.isclose(mesh.s_lines if seg.axis == "s" else mesh.t_lines, seg.value))[0])
+        if seg.axis == "s":  # the s-line's edges between t0 and t1
+            span = (mesh.t_lines >= t0 - 1e-12) & (mesh.t_lines <= t1 + 1e-12)
+            assert mesh.t_edges[k, np.flatnonzero(span)[:-1]].all()
+        else:
+            span = (mesh.s_lines >= s0 - 1e-12) & (mesh.s_lines <= s1 + 1e-12)
+            assert mesh.s_edges[k, np.flatnonzero(span)[:-1]].all()
 
 
 def test_refinement_across_the_seam_and_segment_errors():

@@ -408,7 +408,6 @@ def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float 
         tol = 1e-12 * size
     s_map = np.arange(mesh.shape[0])
     t_map = np.arange(mesh.shape[1])
-    lines = []
     for seg in segments:
         if seg.axis not in ("s", "t"):
             raise InputError(f"KnotSegment.axis: expected 's' or 't', got {seg.axis!r}")
@@ -418,7 +417,8 @@ def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float 
         if new:
             m = s_map if seg.axis == "s" else t_map
             m[m >= k] += 1
-        lines.append(k)
+    # each segment's line in the final grid (later insertions shift indices)
+    lines = [mesh.with_line(seg.axis, seg.value, tol)[1] for seg in segments]
     edges = _Edges(mesh)
     s_n = mesh.shape[0]
     for seg, k in zip(segments, lines):
