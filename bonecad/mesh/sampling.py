@@ -9,7 +9,6 @@ surface) until its edges are short enough.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 
 
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -44,17 +43,13 @@ def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
     return new_vertices, new_faces, parents
 
 
-def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float
-                ) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
+def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """The mesh's vertices, and midpoints of its edges until the median edge is at most ``spacing_mm``.
 
-    Returns (points (k, 3), area weights (k,) mm^2, carry (k, n) sparse):
-    each point's row of ``carry`` holds the weights of the original vertices
-    it is the average of (rows sum to 1; an original vertex is itself), so
-    ``carry @ values`` carries per-vertex figures over to the points.
+    Returns (points (k, 3), area weights (k,) mm^2): the vertices of the
+    subdivided mesh (the original ones first) and a third of the area of
+    their triangles.
     """
-    carry = sp.identity(len(vertices), format="csr")
     while median_edge_mm(vertices, faces) > spacing_mm:
-        vertices, faces, parents = midpoint_subdivision(vertices, faces)
-        carry = (0.5 * (carry[parents[:, 0]] + carry[parents[:, 1]])).tocsr()
-    return vertices, vertex_areas(vertices, faces), carry
+        vertices, faces, _ = midpoint_subdivision(vertices, faces)
+    return vertices, vertex_areas(vertices, faces)

@@ -215,7 +215,7 @@ def build_tspline_model(
 
     mesh_vertices, faces = bone_coordinates(bone, frame)
     # a coarse mesh is sampled between its vertices too (edge midpoints), where its facets are measured
-    vertices, weights, carry = fit_samples(mesh_vertices, faces, float(st["fit_point_spacing_mm"]))
+    vertices, weights = fit_samples(mesh_vertices, faces, float(st["fit_point_spacing_mm"]))
     par = parameterisation(contours)
     radius = float(config["curves"]["apex_hole_radius_mm"])
     hole_d, hole_p = hole_masks(vertices, par, radius)
@@ -230,11 +230,12 @@ def build_tspline_model(
     timings["skin"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
+    # the noise of the fit's own points (the same spacing on every mesh: the same scale);
     # a staircase (voxel-mask mesh) shows its lattice in scanner coordinates
     noise_job = (jobs or JobGroup(background=False)).start(
-        local_noise_mm, mesh_vertices, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
+        local_noise_mm, vertices, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
     s0, t0, _ = initial_parameters(ts0, pts)
-    noise = (carry @ noise_job.result()[0])[keep]
+    noise = noise_job.result()[0][keep]
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
                        constraints=rings, noise=noise)
     timings["fit"] = time.perf_counter() - clock
