@@ -361,8 +361,11 @@ def solve_control_points(
     scale = normal.diagonal().max()
     normal = normal + sp.identity(normal.shape[0]) * (1e-12 * scale)
     try:
-        # minimum degree on the symmetric pattern: about twice as fast as COLAMD here
-        lu = spla.splu(normal.tocsc(), permc_spec="MMD_AT_PLUS_A")
+        # minimum degree on the symmetric pattern (about twice as fast as COLAMD here); the matrix is
+        # symmetric positive definite, so diagonal pivots are stable: symmetric mode keeps the
+        # ordering's fill (another 2x on TLEM2's 2013 control points)
+        lu = spla.splu(normal.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
     except RuntimeError as exc:
         raise FitError(f"least-squares fit: singular normal equations ({exc})") from exc
     cp = lu.solve(np.asarray(rhs))
