@@ -87,6 +87,17 @@ def test_bad_input_leaves_nothing(tmp_path, capsys):
     assert "empty" in capsys.readouterr().err
 
 
+def test_an_error_in_the_frame_stage_exits_2_and_leaves_nothing(tmp_path, phantom, capsys):
+    """The frame and the curves run in a child process: its error still ends the run cleanly."""
+    mesh = tmp_path / "phantom.stl"
+    phantom.to_trimesh().export(mesh)
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(mesh), "--out", str(out), "--distal-boundary", "5000", "-q"]) == 2
+    assert not out.exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "region boundaries" in err[0]
+
+
 def test_background_jobs_change_nothing_but_time(tmp_path, phantom):
     """The second core's jobs (bonecad.parallel) give the same models and figures as one process."""
     from bonecad.config import load_config
