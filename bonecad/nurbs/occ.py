@@ -13,22 +13,13 @@ from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace
 from OCP.BRepFill import BRepFill_Filling
 from OCP.Geom import Geom_BSplineSurface
 from OCP.GeomAbs import GeomAbs_G1
-from OCP.gp import gp_Pnt
-from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array1OfInteger, TColStd_Array1OfReal
 from OCP.TopoDS import TopoDS_Face, TopoDS_Shape
 
 from ..curves.bspline import BSplineCurve
 from ..errors import FitError, KernelError
-from ..io.brep import edges
+from ..io.brep import array1, edges, pole_grid
 from .surface import BSplineSurface
-
-def _array1(values, cls):
-    arr = cls(1, len(values))
-    for k, v in enumerate(values):
-        arr.SetValue(k + 1, v)
-    return arr
-
 
 def _knots_and_mults(knots: np.ndarray, periodic: bool) -> tuple[list[float], list[int]]:
     if periodic:
@@ -39,20 +30,16 @@ def _knots_and_mults(knots: np.ndarray, periodic: bool) -> tuple[list[float], li
 
 def to_geom_surface(surface: BSplineSurface) -> Geom_BSplineSurface:
     """An exact Geom_BSplineSurface of ``surface`` (periodic directions stay periodic, single knots)."""
-    nu, nv = surface.shape
-    poles = TColgp_Array2OfPnt(1, nu, 1, nv)
-    for a in range(nu):
-        for b in range(nv):
-            poles.SetValue(a + 1, b + 1, gp_Pnt(*map(float, surface.poles[a, b])))
+    poles = pole_grid(surface.poles)
     uk, um = _knots_and_mults(surface.knots_u, surface.periodic_u)
     vk, vm = _knots_and_mults(surface.knots_v, surface.periodic_v)
     try:
         return Geom_BSplineSurface(
             poles,
-            _array1(uk, TColStd_Array1OfReal),
-            _array1(vk, TColStd_Array1OfReal),
-            _array1(um, TColStd_Array1OfInteger),
-            _array1(vm, TColStd_Array1OfInteger),
+            array1(uk, TColStd_Array1OfReal),
+            array1(vk, TColStd_Array1OfReal),
+            array1(um, TColStd_Array1OfInteger),
+            array1(vm, TColStd_Array1OfInteger),
             surface.degree_u,
             surface.degree_v,
             surface.periodic_u,

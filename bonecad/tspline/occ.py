@@ -17,44 +17,15 @@ from __future__ import annotations
 import numpy as np
 from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace
 from OCP.Geom import Geom_BezierSurface, Geom_BSplineSurface
-from OCP.gp import gp_Pnt
-from OCP.TColgp import TColgp_Array2OfPnt
-from OCP.TColStd import TColStd_Array1OfInteger, TColStd_Array1OfReal, TColStd_Array2OfReal
+from OCP.TColStd import TColStd_Array1OfInteger, TColStd_Array1OfReal
 from OCP.TopoDS import TopoDS_Face, TopoDS_Shape
 
 from bonecad.errors import InputError, KernelError
-from bonecad.io.brep import sew
+from bonecad.io.brep import array1, pole_grid, real_grid, sew
 from bonecad.tspline.tspline import TSpline
 
 #: Largest relative weight spread still written as a polynomial Bezier patch.
 _POLYNOMIAL_WEIGHTS = 1e-14
-
-
-def _poles(points: np.ndarray) -> TColgp_Array2OfPnt:
-    """(m, n, 3) float -> 1-based TColgp_Array2OfPnt."""
-    m, n, _ = points.shape
-    arr = TColgp_Array2OfPnt(1, m, 1, n)
-    for a in range(m):
-        for b in range(n):
-            x, y, z = points[a, b]
-            arr.SetValue(a + 1, b + 1, gp_Pnt(float(x), float(y), float(z)))
-    return arr
-
-
-def _weights(w: np.ndarray) -> TColStd_Array2OfReal:
-    m, n = w.shape
-    arr = TColStd_Array2OfReal(1, m, 1, n)
-    for a in range(m):
-        for b in range(n):
-            arr.SetValue(a + 1, b + 1, float(w[a, b]))
-    return arr
-
-
-def _array1(values, cls):
-    arr = cls(1, len(values))
-    for k, v in enumerate(values):
-        arr.SetValue(k + 1, v)
-    return arr
 
 
 def bezier_surfaces(ts: TSpline) -> list[Geom_BezierSurface]:
@@ -66,9 +37,9 @@ def bezier_surfaces(ts: TSpline) -> list[Geom_BezierSurface]:
     out = []
     for p, w in zip(points, weights):
         if np.ptp(w) <= _POLYNOMIAL_WEIGHTS * w.max():
-            out.append(Geom_BezierSurface(_poles(p)))
+            out.append(Geom_BezierSurface(pole_grid(p)))
         else:
-            out.append(Geom_BezierSurface(_poles(p), _weights(w)))
+            out.append(Geom_BezierSurface(pole_grid(p), real_grid(w)))
     return out
 
 
@@ -115,12 +86,12 @@ def bspline_surface(ts: TSpline) -> Geom_BSplineSurface:
         u_mults = [4] + [1] * (len(u_knots) - 2) + [4]
     try:
         return Geom_BSplineSurface(
-            _poles(grid),
-            _weights(w),
-            _array1([float(k) for k in u_knots], TColStd_Array1OfReal),
-            _array1([float(k) for k in t_knots], TColStd_Array1OfReal),
-            _array1(u_mults, TColStd_Array1OfInteger),
-            _array1(v_mults, TColStd_Array1OfInteger),
+            pole_grid(grid),
+            real_grid(w),
+            array1([float(k) for k in u_knots], TColStd_Array1OfReal),
+            array1([float(k) for k in t_knots], TColStd_Array1OfReal),
+            array1(u_mults, TColStd_Array1OfInteger),
+            array1(v_mults, TColStd_Array1OfInteger),
             3,
             3,
             mesh.periodic,
@@ -244,17 +215,17 @@ def _block_surface(ts: TSpline, block: np.ndarray, points: np.ndarray, weights: 
     u_mults = [4] + [3] * (n_u - 1) + [4]
     v_mults = [4] + [3] * (n_v - 1) + [4]
     args = (
-        _array1([float(k) for k in u_knots], TColStd_Array1OfReal),
-        _array1([float(k) for k in v_knots], TColStd_Array1OfReal),
-        _array1(u_mults, TColStd_Array1OfInteger),
-        _array1(v_mults, TColStd_Array1OfInteger),
+        array1([float(k) for k in u_knots], TColStd_Array1OfReal),
+        array1([float(k) for k in v_knots], TColStd_Array1OfReal),
+        array1(u_mults, TColStd_Array1OfInteger),
+        array1(v_mults, TColStd_Array1OfInteger),
         3,
         3,
     )
     if np.ptp(w) <= _POLYNOMIAL_WEIGHTS * w.max():
-        surf = Geom_BSplineSurface(_poles(poles), *args)
+        surf = Geom_BSplineSurface(pole_grid(poles), *args)
     else:
-        surf = Geom_BSplineSurface(_poles(poles), _weights(w), *args)
+        surf = Geom_BSplineSurface(pole_grid(poles), real_grid(w), *args)
     for k in range(2, n_u + 1):
         surf.RemoveUKnot(k, 1, tolerance_mm)
     for k in range(2, n_v + 1):
@@ -276,9 +247,9 @@ def merged_surfaces(ts: TSpline, *, tolerance_mm: float = 1e-7) -> list[tuple[ob
         if block.size == 1:
             p, w = points[block[0, 0]], weights[block[0, 0]]
             if np.ptp(w) <= _POLYNOMIAL_WEIGHTS * w.max():
-                out.append((Geom_BezierSurface(_poles(p)), block))
+                out.append((Geom_BezierSurface(pole_grid(p)), block))
             else:
-                out.append((Geom_BezierSurface(_poles(p), _weights(w)), block))
+                out.append((Geom_BezierSurface(pole_grid(p), real_grid(w)), block))
         else:
             out.append((_block_surface(ts, block, points, weights, tolerance_mm), block))
     return out
