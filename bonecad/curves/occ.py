@@ -19,6 +19,8 @@ def to_geom_curve(curve: BSplineCurve):
     from OCP.TColgp import TColgp_Array1OfPnt
     from OCP.TColStd import TColStd_Array1OfInteger, TColStd_Array1OfReal
 
+    from ..io.brep import array1
+
     poles = TColgp_Array1OfPnt(1, curve.count)
     for i, p in enumerate(curve.control_points, start=1):
         poles.SetValue(i, gp_Pnt(*map(float, p)))
@@ -27,11 +29,8 @@ def to_geom_curve(curve: BSplineCurve):
         counts = np.ones(len(values), dtype=int)
     else:
         values, counts = _knots_and_multiplicities(curve.knots)
-    knots = TColStd_Array1OfReal(1, len(values))
-    mults = TColStd_Array1OfInteger(1, len(values))
-    for i, (v, m) in enumerate(zip(values, counts), start=1):
-        knots.SetValue(i, float(v))
-        mults.SetValue(i, int(m))
+    knots = array1([float(v) for v in values], TColStd_Array1OfReal)
+    mults = array1([int(m) for m in counts], TColStd_Array1OfInteger)
     try:
         return Geom_BSplineCurve(poles, knots, mults, curve.degree, curve.periodic)
     except Exception as exc:  # OCP raises Standard_ConstructionError

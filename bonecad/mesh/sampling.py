@@ -24,12 +24,11 @@ def median_edge_mm(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)))
 
 
-def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each triangle split into four at its edge midpoints (the same surface, half the edge length).
 
-    Returns (vertices (n + m, 3), faces (4 f, 3), parents (n + m, 2)): the
-    original vertices come first, each its own parent twice; a midpoint's
-    parents are its edge's two ends.
+    Returns (vertices (n + m, 3), faces (4 f, 3)): the original vertices
+    first, then the midpoints of the m edges.
     """
     n = len(vertices)
     edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
@@ -39,8 +38,7 @@ def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
     ab, bc, ca = mid.T
     new_faces = np.concatenate([np.stack(f, axis=1) for f in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
     new_vertices = np.vstack([vertices, 0.5 * (vertices[unique[:, 0]] + vertices[unique[:, 1]])])
-    parents = np.vstack([np.repeat(np.arange(n)[:, None], 2, axis=1), unique])
-    return new_vertices, new_faces, parents
+    return new_vertices, new_faces
 
 
 def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -51,5 +49,5 @@ def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float) -> t
     their triangles.
     """
     while median_edge_mm(vertices, faces) > spacing_mm:
-        vertices, faces, _ = midpoint_subdivision(vertices, faces)
+        vertices, faces = midpoint_subdivision(vertices, faces)
     return vertices, vertex_areas(vertices, faces)
