@@ -2,7 +2,7 @@
 import numpy as np
 import trimesh
 
-from bonecad.mesh.sampling import fit_samples, median_edge_mm, midpoint_subdivision, vertex_areas
+from bonecad.mesh.sampling import edge_midpoints, fit_samples, median_edge_mm, midpoint_subdivision, vertex_areas
 
 
 def _sphere(subdivisions: int = 1):
@@ -25,15 +25,33 @@ def test_midpoint_subdivision_keeps_the_surface_and_names_each_new_vertex_s_edge
     assert np.isclose(median_edge_mm(new_v, new_f), 0.5 * median_edge_mm(vertices, faces), rtol=0.05)
 
 
-def test_fit_samples_split_a_coarse_mesh_until_its_edges_are_short_and_leave_a_fine_one_alone():
+def test_fit_samples_take_a_fine_mesh_s_vertices_and_a_coarse_one_s_edge_midpoints_after_splitting():
     vertices, faces = _sphere()
-    coarse = median_edge_mm(vertices, faces)
-    points, weights = fit_samples(vertices, faces, coarse / 3.0)
-    assert len(points) > 10 * len(vertices)  # two rounds of splitting
-    assert median_edge_mm(*midpoint_subdivision(*midpoint_subdivision(vertices, faces))) <= coarse / 3.0
-    assert np.array_equal(points[: len(vertices)], vertices)
-    assert np.isclose(weights.sum(), vertex_areas(vertices, faces).sum(), rtol=1e-12)
-    # the new points lie on the original facets: at the sphere's radius or inside it, never outside
-    assert np.linalg.norm(points, axis=1).max() <= 10.0 + 1e-9
-    same, same_weights = fit_samples(vertices, faces, coarse * 1.01)
+    edge = median_edge_mm(vertices, faces)
+    area = vertex_areas(vertices, faces).sum()
+    # fine: the vertices, a third of their triangles' area each
+    same, same_weights = fit_samples(vertices, faces, edge * 1.01)
     assert np.array_equal(same, vertices) and np.allclose(same_weights, vertex_areas(vertices, faces))
+    # coarse, but edges within twice the spacing: the midpoints of the mesh's own edges
+    points, weights = fit_samples(vertices, faces, edge * 0.6)
+    assert len(points) == 3 * len(faces) // 2
+    assert np.isclose(weights.sum(), area, rtol=1e-12)
+    # coarser: split once (edges halved), then the split mesh's edge midpoints
+    points, weights = fit_samples(vertices, faces, edge * 0.3)
+    assert len(points) == 4 * 3 * len(faces) // 2
+    assert np.isclose(weights.sum(), area, rtol=1e-12)
+    # the points lie on the original facets: inside the sphere, never outside
+    assert np.linalg.norm(points, axis=1).max() <= 10.0 + 1e-9
+
+
+def test_edge_midpoint_rule_integrates_quadratics_over_the_facets_exactly():
+    vertices, faces = _sphere()
+    points, weights = edge_midpoints(vertices, faces)
+    tri = vertices[faces]
+    # exact integral of x^2 over each flat triangle: area / 6 * (sum of x_i^2 + sum_{i<j} x_i x_j)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    x = tri[:, :, 0]
+    exact = np.sum(area / 6.0 * (np.sum(x**2, axis=1) + x[:, 0] * x[:, 1] + x[:, 1] * x[:, 2] + x[:, 2] * x[:, 0]))
+    assert np.isclose(np.sum(weights * points[:, 0] ** 2), exact, rtol=1e-12)
+    # the vertex rule does not: it puts all the weight on the corners
+    assert not np.isclose(np.sum(vertex_areas(vertices, faces) * vertices[:, 0] ** 2), exact, rtol=1e-3)

@@ -1,27 +1,42 @@
 """Points that stand for a triangle mesh's surface in a least-squares fit.
 
 A fit to the vertices alone integrates the distance with one point per
-vertex; on a coarse mesh (edges of a few mm) that misses what the facets do
-between the vertices, where the surface's deviation is measured too. Such a
-mesh is subdivided at its edge midpoints (each triangle into four, same
-surface) until its edges are short enough.
+vertex. On a fine mesh that is the surface; on a coarse one (edges of a few
+mm) the vertices are the facets' corners, where a smooth surface through the
+facets lies farthest from them, and what the facets do between the corners,
+where the deviation is measured too, is missed. Such a mesh is sampled at
+its edge midpoints instead: the edge-midpoint rule (weights a third of each
+adjacent triangle's area) integrates every quadratic over a triangle
+exactly, and the distance of a flat facet from a smooth surface varies
+quadratically across it.
 """
 from __future__ import annotations
 
 import numpy as np
 
 
+def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(f,) mm^2: the area of each triangle."""
+    tri = vertices[faces]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(n,) mm^2: a third of the area of each vertex's triangles."""
-    tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    return np.bincount(faces.ravel(), np.repeat(area / 3.0, 3), minlength=len(vertices))
+    return np.bincount(faces.ravel(), np.repeat(triangle_areas(vertices, faces) / 3.0, 3), minlength=len(vertices))
 
 
 def median_edge_mm(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Median length of the triangles' edges (mm)."""
     tri = vertices[faces]
     return float(np.median(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)))
+
+
+def _edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(m, 2) the unique edges (sorted vertex pairs) and (f, 3) each face's edges (a b), (b c), (c a) among them."""
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+    return unique, inverse.reshape(-1, 3)
 
 
 def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -31,9 +46,8 @@ def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
     first, then the midpoints of the m edges.
     """
     n = len(vertices)
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
-    mid = n + inverse.reshape(-1, 3)  # midpoints of edges (a b), (b c), (c a) of each face
+    unique, face_edges = _edges(faces)
+    mid = n + face_edges
     a, b, c = faces.T
     ab, bc, ca = mid.T
     new_faces = np.concatenate([np.stack(f, axis=1) for f in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
@@ -41,13 +55,26 @@ def midpoint_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
     return new_vertices, new_faces
 
 
-def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh's vertices, and midpoints of its edges until the median edge is at most ``spacing_mm``.
+def edge_midpoints(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The edge-midpoint quadrature of a mesh's surface: (points (m, 3), weights (m,) mm^2),
+    one point per edge, weighted by a third of the area of the triangles beside it."""
+    unique, face_edges = _edges(faces)
+    weights = np.bincount(face_edges.ravel(), np.repeat(triangle_areas(vertices, faces) / 3.0, 3),
+                          minlength=len(unique))
+    return 0.5 * (vertices[unique[:, 0]] + vertices[unique[:, 1]]), weights
 
-    Returns (points (k, 3), area weights (k,) mm^2): the vertices of the
-    subdivided mesh (the original ones first) and a third of the area of
-    their triangles.
+
+def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points at most about ``spacing_mm`` apart that stand for the mesh's surface, with their areas.
+
+    A mesh whose median edge is at most ``spacing_mm`` gives its vertices
+    (weights: a third of their triangles' area). A coarser one is split at
+    its edge midpoints while its median edge exceeds twice ``spacing_mm``,
+    and gives the midpoints of its edges (``edge_midpoints``, half an edge
+    apart). Returns (points (k, 3), area weights (k,) mm^2).
     """
-    while median_edge_mm(vertices, faces) > spacing_mm:
+    if median_edge_mm(vertices, faces) <= spacing_mm:
+        return vertices, vertex_areas(vertices, faces)
+    while median_edge_mm(vertices, faces) > 2.0 * spacing_mm:
         vertices, faces = midpoint_subdivision(vertices, faces)
-    return vertices, vertex_areas(vertices, faces)
+    return edge_midpoints(vertices, faces)

@@ -7,7 +7,7 @@ Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
 1. parameterise and skin the three contour-curve sets on one T-mesh
    (:mod:`.skinning`);
 2. fit the T-spline to every mesh vertex outside the apex holes (area
-   weights; on a coarse mesh its edge midpoints too), with parameter
+   weights; on a coarse mesh its edge midpoints instead), with parameter
    correction and error-driven local refinement (:mod:`.fit`), until the tolerances hold or the control-point budget is hit;
 3. fit a tensor-product B-spline to the same points and tolerances by
    refining whole knot lines, for the control-point comparison;
@@ -213,7 +213,7 @@ def build_tspline_model(
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
-    # a coarse mesh is sampled between its vertices too (edge midpoints), where its facets are measured
+    # a coarse mesh is sampled at its edge midpoints, which integrate its facets (its vertices are their corners)
     vertices, weights = fit_samples(*bone_coordinates(bone, frame), float(st["fit_point_spacing_mm"]))
     par = parameterisation(contours)
     radius = float(config["curves"]["apex_hole_radius_mm"])
