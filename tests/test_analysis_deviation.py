@@ -100,6 +100,16 @@ def test_sphere_against_its_own_tessellation_is_at_the_tessellation_bound(sphere
     assert back.stats.area_mm2 == pytest.approx(4 * np.pi * RADIUS**2, rel=1e-5)
 
 
+def test_vertex_deviation_for_the_colour_map_is_within_the_chord_error(sphere, sphere_fine):
+    """Mesh vertices on the exact sphere (distance 0) measured on the shape's tessellation."""
+    coarse = tessellate(sphere, TessellationSettings(deflection_mm=0.2))
+    result = shape_deviation(coarse.vertices, coarse.triangles, sphere, sample_points=2000, tessellation=sphere_fine)
+    exact = np.linalg.norm(coarse.vertices, axis=1) - RADIUS
+    assert np.abs(exact).max() < 1e-9
+    assert np.abs(result.vertex_deviation_mm - exact).max() <= sphere_fine.chord_error_mm.max() + 1e-9
+    assert np.abs(result.vertex_deviation_mm).max() > 0.0  # the tessellation's, not the exact distance
+
+
 def test_shape_samples_lie_on_the_exact_surface_with_area_weights(sphere):
     """Caps of a sphere (area 2 pi R h): their weighted share of samples drawn on a coarse tessellation."""
     coarse = tessellate(sphere, TessellationSettings(deflection_mm=0.05))

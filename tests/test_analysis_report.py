@@ -88,7 +88,8 @@ def test_golden_update_mode_and_missing_golden(tmp_path, monkeypatch):
 def test_report_json_and_html(sphere, tmp_path):
     shape, tess = sphere
     v, f, dev = _deviation(sphere)
-    assert np.abs(dev.vertex_deviation_mm).max() <= 0.3 + 1e-6
+    # the wave, measured on the tessellation: within its chord error of the exact distance
+    assert np.abs(dev.vertex_deviation_mm).max() <= 0.3 + tess.chord_error_mm.max() + 1e-6
     frame = np.eye(3)
     cmap = deviation_map_png(tmp_path / "deviation_nurbs.png", v, f, dev.vertex_deviation_mm, frame, height_px=200)
     hist = histogram_png(tmp_path / "histogram_nurbs.png",

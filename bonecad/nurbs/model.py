@@ -40,6 +40,7 @@ class NurbsModel:
         fill-hole patch, whose parametrisation OpenCascade chooses)
     shape : the OCP TopoDS_Solid
     face_names : (region name, TopoDS_Face) of every face of ``shape``
+    volume_mm3 : the solid's volume (its area is the analysis' CAD -> mesh area)
     refits : deviation of the compatible (common-knot) curves per region
     boundary_gap_mm : largest distance between the shaft's end iso-curves and the
         end surfaces' boundary iso-curves (distal, proximal); 0 by construction
@@ -54,7 +55,6 @@ class NurbsModel:
     face_names: tuple[tuple[str, object], ...]
     apex_fill: str
     volume_mm3: float
-    area_mm2: float
     refits: tuple[RefitReport, ...]
     boundary_gap_mm: tuple[float, float]
     boundary_shift_mm: tuple[float, float]
@@ -102,7 +102,6 @@ class NurbsModel:
             "control_points": self.control_points,
             "apex_fill": self.apex_fill,
             "volume_mm3": round(self.volume_mm3, 3),
-            "area_mm2": round(self.area_mm2, 3),
             "surfaces": [s.to_dict() | {"control_points": s.control_points} for s in self.surfaces],
             "compatible_curves": [r.to_dict() for r in self.refits],
             "boundary_gap_mm": [float(g) for g in self.boundary_gap_mm],
@@ -187,7 +186,6 @@ def build_nurbs(contours: ContourSet, *, apex_fill: ApexFill | None = None, conf
     volume = brep.volume_mm3(solid)
     if not volume > 0:
         raise KernelError(f"the NURBS solid has volume {volume:.1f} mm^3: it is inside out")
-    area = brep.area_mm2(solid)
     timings["check"] = time.perf_counter() - start
     return NurbsModel(
         surfaces=tuple(final),
@@ -195,7 +193,6 @@ def build_nurbs(contours: ContourSet, *, apex_fill: ApexFill | None = None, conf
         face_names=tuple(sorted(face_names, key=lambda item: FACE_NAMES.index(item[0]))),
         apex_fill=apex_fill,
         volume_mm3=volume,
-        area_mm2=area,
         refits=bone.refits,
         boundary_gap_mm=gaps,
         boundary_shift_mm=bone.boundary_shift_mm,

@@ -247,13 +247,15 @@ def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float 
     for lo in range(0, len(points), 1 << 15):
         nb = points[idx[lo : lo + (1 << 15)]]  # (m, k, 3)
         q = nb - nb.mean(axis=1, keepdims=True)
-        _, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", q, q))  # ascending: vec[..., 0] = normal
-        loc = np.einsum("mki,mij->mkj", q, vec)
+        # batched matmuls throughout (several times faster than the equivalent einsums)
+        _, vec = np.linalg.eigh(q.transpose(0, 2, 1) @ q)  # ascending: vec[..., 0] = normal
+        loc = q @ vec
         z, x, y = loc[..., 0], loc[..., 1], loc[..., 2]
         design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)  # (m, k, 6)
-        ata = np.einsum("mki,mkj->mij", design, design) + 1e-9 * np.eye(6)
-        coef = np.linalg.solve(ata, np.einsum("mki,mk->mi", design, z)[..., None])[..., 0]
-        res = z - np.einsum("mki,mi->mk", design, coef)
+        design_t = design.transpose(0, 2, 1)
+        ata = design_t @ design + 1e-9 * np.eye(6)
+        coef = np.linalg.solve(ata, design_t @ z[..., None])
+        res = z - (design @ coef)[..., 0]
         out[lo : lo + len(nb)] = np.sqrt(np.mean(res**2, axis=1))
     return np.maximum(out, voxel_mm / np.sqrt(12.0))
 
