@@ -273,7 +273,8 @@ def reconstruct_bone(
                 _build_models(result, stage_dir, models, compare_tensor_product, config, timings, jobs, side)
             else:
                 timings.update(side.result()[0]["timings"])
-        write_json({"input": mesh_summary(bone), **frame.as_dict(), "timings_s": dict(timings)}, stage_dir / "frame.json")
+        # no timings (they are in report.json): the same input gives the same frame.json
+        write_json({"input": mesh_summary(bone), **frame.as_dict()}, stage_dir / "frame.json")
         result.files = sorted(p.name for p in stage_dir.iterdir())
     result.timings_s = dict(timings)
     result.wall_s = timings.wall_s()

@@ -99,7 +99,8 @@ def test_an_error_in_the_frame_stage_exits_2_and_leaves_nothing(tmp_path, phanto
 
 
 def test_background_jobs_change_nothing_but_time(tmp_path, phantom):
-    """The second core's jobs (bonecad.parallel) give the same models and figures as one process."""
+    """The second core's jobs (bonecad.parallel) give the same models and figures as one process:
+    every file byte for byte (STEP, IGES, JSON, PNG), the report but for its timings."""
     from bonecad.config import load_config
     from bonecad.pipeline import reconstruct_bone
 
@@ -117,3 +118,7 @@ def test_background_jobs_change_nothing_but_time(tmp_path, phantom):
         reports.append((report["models"], json.loads((out / "curves.json").read_text()),
                         sorted(p.name for p in out.iterdir())))
     assert reports[0] == reports[1]
+    for name in reports[0][2]:
+        if not name.startswith("report."):
+            assert (tmp_path / "background_True" / name).read_bytes() == \
+                (tmp_path / "background_False" / name).read_bytes(), name

@@ -78,6 +78,21 @@ def test_one_dicom_file_reads_its_series(tmp_path):
     assert back.source == str(folder)
 
 
+def test_writers_give_the_same_files_for_the_same_volume_and_new_uids_for_another(tmp_path):
+    volume = _volume()
+    first = write_dicom_series(volume, tmp_path / "first")
+    again = write_dicom_series(volume, tmp_path / "again")
+    for a in sorted(first.iterdir()):
+        assert a.read_bytes() == (again / a.name).read_bytes(), a.name
+    uids = [pydicom.dcmread(f).SOPInstanceUID for f in sorted(first.iterdir())]
+    assert len(set(uids)) == len(uids)
+    other = _volume(seed=7)
+    series = {pydicom.dcmread(next(write_dicom_series(v, tmp_path / n).iterdir())).SeriesInstanceUID
+              for v, n in ((volume, "a"), (other, "b"))}
+    assert len(series) == 2
+    assert write_nifti(volume, tmp_path / "a.nii.gz").read_bytes() == write_nifti(volume, tmp_path / "b.nii.gz").read_bytes()
+
+
 def test_dicom_folder_picks_the_ct_series_with_most_slices(tmp_path):
     folder = tmp_path / "study"
     write_dicom_series(_volume(shape=(5, 14, 17), seed=1), folder / "a")

@@ -250,6 +250,37 @@ def stamp_iges_header(writer) -> None:
     model.SetGlobalSection(section)
 
 
+def order_name_entities(model) -> None:
+    """Put an IGES model's name entities (406 form 15) in a fixed order: by the first entity that
+    refers to them, then unreferenced ones by name.
+
+    OpenCascade's XCAF writer adds them in the order of a hash map keyed by memory address, which
+    changes from run to run; everything else it writes in a fixed order, so the file is then the
+    same for the same shapes and names. (``model.Number`` of an entity is 0 through OCP, so
+    entities are matched by identity of their Python wrappers, which pybind11 keeps one per object
+    while they are referenced.)
+    """
+    entities = [model.Entity(i) for i in range(1, model.NbEntities() + 1)]
+    is_name = [e.TypeNumber() == 406 and e.FormNumber() == 15 for e in entities]
+    names = {id(e): e for e, flag in zip(entities, is_name) if flag}
+    ordered: dict[int, object] = {}
+    for entity, flag in zip(entities, is_name):
+        if flag or not entity.NbProperties():
+            continue
+        found = entity.Properties()
+        found.Start()
+        while found.More():
+            prop = found.Value()
+            if id(prop) in names:
+                ordered.setdefault(id(prop), prop)
+            found.Next()
+    rest = sorted((e for key, e in names.items() if key not in ordered), key=lambda e: e.Value().ToCString())
+    new = [e for e, flag in zip(entities, is_name) if not flag] + list(ordered.values()) + rest
+    model.ClearEntities()
+    for entity in new:
+        model.AddEntity(entity)
+
+
 @contextmanager
 def quiet():
     """Only failures from OpenCascade's console messenger while writing (it prints transfer statistics)."""
@@ -270,6 +301,7 @@ def write_named_step(shape: TopoDS_Shape, path: str | Path, name: str, face_name
     """STEP AP214 in mm, atomically: the product and solid named ``name``, every face by its
     region (``ADVANCED_FACE('distal', ...)``, which STEP readers show as face names)."""
     from OCP.IFSelect import IFSelect_RetDone
+    from OCP.StepBasic import StepBasic_Product
     from OCP.STEPConstruct import STEPConstruct
     from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
     from OCP.TCollection import TCollection_HAsciiString
@@ -281,6 +313,14 @@ def write_named_step(shape: TopoDS_Shape, path: str | Path, name: str, face_name
         stamp_step_header(writer.Model(), name)
         if writer.Transfer(shape, STEPControl_AsIs) != IFSelect_RetDone:
             raise KernelError(f"OpenCascade could not translate the shape for STEP file {path}")
+        # the product is the model (else OpenCascade names it after its translator and a count of the
+        # shapes this process has written so far, which changes with what ran before)
+        model = writer.Model()
+        for index in range(1, model.NbEntities() + 1):
+            entity = model.Value(index)
+            if isinstance(entity, StepBasic_Product):
+                entity.SetId(TCollection_HAsciiString(name))
+                entity.SetName(TCollection_HAsciiString(name))
         finder = writer.WS().TransferWriter().FinderProcess()
         for item_name, item in [(name, shape), *face_names]:
             entity = STEPConstruct.FindEntity_s(finder, item)
@@ -309,6 +349,7 @@ def write_xcaf_iges(doc, path: str | Path) -> Path:
     if not writer.Transfer(doc):
         raise KernelError(f"OpenCascade could not translate the shapes for IGES file {path}")
     stamp_iges_header(writer)
+    order_name_entities(writer.Model())
     with quiet(), staged_file(path) as tmp:
         if not writer.Write(str(tmp)):
             raise KernelError(f"OpenCascade could not write IGES file {path}")

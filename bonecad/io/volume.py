@@ -16,6 +16,7 @@ Conventions (every volume bonecad reads or makes follows them):
 from __future__ import annotations
 
 import gzip
+import hashlib
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -380,7 +381,7 @@ def write_nifti(volume: CTVolume, path: str | Path) -> Path:
     image.set_qform(affine_ras if orthogonal else None, code=1 if orthogonal else 0)
     payload = image.to_bytes()
     if path.name.lower().endswith(".gz"):
-        payload = gzip.compress(payload, compresslevel=6)
+        payload = gzip.compress(payload, compresslevel=6, mtime=0)  # no time stamp: same volume, same file
     with staged_file(path) as tmp:
         tmp.write_bytes(payload)
     return path
@@ -403,8 +404,14 @@ def write_dicom_series(volume: CTVolume, folder: str | Path, *, series_descripti
     spacing = volume.spacing_mm
     normal = np.cross(row_cos, col_cos)
     thickness = float(abs(affine[:3, 2] @ normal))
-    study_uid, series_uid, frame_uid = generate_uid(), generate_uid(), generate_uid()
     stored = np.clip(np.rint(volume.hu) + 1024, -32768, 32767).astype(np.int16)
+    # UIDs derived from the content (pydicom hashes the entropy sources): unique to this volume,
+    # and the same volume gives the same files
+    content = hashlib.blake2b(stored.tobytes(), digest_size=16)
+    content.update(np.ascontiguousarray(affine, dtype=np.float64).tobytes())
+    content.update(series_description.encode())
+    key = content.hexdigest()
+    study_uid, series_uid, frame_uid = (generate_uid(entropy_srcs=[key, role]) for role in ("study", "series", "frame"))
     missing = set(volume.missing_slices)
     with staged_output(folder) as stage:
         number = 0
@@ -414,7 +421,7 @@ def write_dicom_series(volume: CTVolume, folder: str | Path, *, series_descripti
             number += 1
             meta = FileMetaDataset()
             meta.MediaStorageSOPClassUID = CTImageStorage
-            meta.MediaStorageSOPInstanceUID = generate_uid()
+            meta.MediaStorageSOPInstanceUID = generate_uid(entropy_srcs=[key, "slice", str(k)])
             meta.TransferSyntaxUID = ExplicitVRLittleEndian
             ds = pydicom.Dataset()
             ds.file_meta = meta

@@ -347,7 +347,8 @@ def write_tspline(model: TSplineModel, out_dir: str | Path) -> dict[str, Path]:
         "coordinates": "input (scanner) coordinates",
         "tube": to_dict(to_scanner(model.tspline, model.frame)),
         "caps": {c.end: to_dict(to_scanner(c.tspline, model.frame)) for c in model.caps},
-        "summary": model.summary(),
+        # no timings (they are in report.json): the same input gives the same tspline.json
+        "summary": {key: value for key, value in model.summary().items() if key != "timings_s"},
     }
     path = out / "tspline.json"
     tmp = path.with_suffix(".json.part")
