@@ -8,13 +8,14 @@ Every command of the CLI is one function here, writing through
 """
 from __future__ import annotations
 
+
 import importlib
 import json
 import logging
 import tempfile
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -409,7 +410,8 @@ def run_demo(out_dir: str | Path, *, config: dict | None = None) -> Reconstructi
             write_nifti(ct, stage_dir / "phantom_ct.nii.gz")
             dicom = write_dicom_series(ct, stage_dir / "phantom_ct")
         with timings.stage("segmentation of the phantom CT"):
-            bone = load_input(dicom, config=config)
+            # named by where the series will be, not by the staging folder
+            bone = replace(load_input(dicom, config=config), source=str(Path(out_dir) / dicom.name))
         result = reconstruct_bone(bone, stage_dir, config=config, timings=timings)
     result.out_dir = Path(out_dir)
     return result
