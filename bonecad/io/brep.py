@@ -10,6 +10,7 @@ and every face named (STEP entity names, XCAF sub-shape names).
 from __future__ import annotations
 
 import io
+import logging
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -29,6 +30,8 @@ from OCP.gp import gp_Pnt
 
 from ..errors import KernelError
 from .output import staged_file
+
+log = logging.getLogger("bonecad")
 
 #: Relative error of the adaptive volume and area integration.
 VOLUME_EPS = 1e-6
@@ -280,7 +283,10 @@ def order_name_entities(model) -> None:
     values = [name.Value().ToCString() for _, name in named]
     values += sorted(e.Value().ToCString() for e in slots if id(e) not in referenced)
     if len(values) != len(slots):
-        raise KernelError("an IGES name entity is shared by several entities; cannot order the names")
+        # a name entity shared by several entities (the XCAF writer makes one per named shape):
+        # the file stays valid, only its order is left to OpenCascade
+        log.warning("IGES: a name entity is shared by several entities; names left in OpenCascade's order")
+        return
     for (entity, old), slot in zip(named, slots):
         entity.RemoveProperty(old)
     for (entity, _), slot in zip(named, slots):
