@@ -8,7 +8,6 @@ Every command of the CLI is one function here, writing through
 """
 from __future__ import annotations
 
-
 import importlib
 import json
 import logging

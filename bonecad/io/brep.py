@@ -287,7 +287,7 @@ def order_name_entities(model) -> None:
         # the file stays valid, only its order is left to OpenCascade
         log.warning("IGES: a name entity is shared by several entities; names left in OpenCascade's order")
         return
-    for (entity, old), slot in zip(named, slots):
+    for entity, old in named:
         entity.RemoveProperty(old)
     for (entity, _), slot in zip(named, slots):
         entity.AddProperty(slot)
