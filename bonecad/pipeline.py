@@ -273,7 +273,7 @@ def reconstruct_bone(
                 _build_models(result, stage_dir, models, compare_tensor_product, config, timings, jobs, side)
             else:
                 timings.update(side.result()[0]["timings"])
-        # no timings (they are in report.json): the same input gives the same frame.json
+        # no timings (report.json and the log have them): the same input gives the same frame.json
         write_json({"input": mesh_summary(bone), **frame.as_dict()}, stage_dir / "frame.json")
         result.files = sorted(p.name for p in stage_dir.iterdir())
     result.timings_s = dict(timings)

@@ -101,13 +101,18 @@ def test_sphere_against_its_own_tessellation_is_at_the_tessellation_bound(sphere
 
 
 def test_vertex_deviation_for_the_colour_map_is_within_the_chord_error(sphere, sphere_fine):
-    """Mesh vertices on the exact sphere (distance 0) measured on the shape's tessellation."""
-    coarse = tessellate(sphere, TessellationSettings(deflection_mm=0.2))
-    result = shape_deviation(coarse.vertices, coarse.triangles, sphere, sample_points=2000, tessellation=sphere_fine)
-    exact = np.linalg.norm(coarse.vertices, axis=1) - RADIUS
+    """Vertices on the exact sphere (distance 0), away from the tessellation's nodes, are measured on
+    the tessellation: within its chord error, and not exactly (a picture, not a statistic)."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    result = shape_deviation(vertices, faces, sphere, sample_points=2000, tessellation=sphere_fine)
+    exact = np.linalg.norm(vertices, axis=1) - RADIUS
     assert np.abs(exact).max() < 1e-9
-    assert np.abs(result.vertex_deviation_mm - exact).max() <= sphere_fine.chord_error_mm.max() + 1e-9
-    assert np.abs(result.vertex_deviation_mm).max() > 0.0  # the tessellation's, not the exact distance
+    error = np.abs(result.vertex_deviation_mm - exact)
+    assert error.max() <= sphere_fine.chord_error_mm.max() + 1e-9
+    assert error.max() > 1e-4
 
 
 def test_shape_samples_lie_on_the_exact_surface_with_area_weights(sphere):

@@ -1,4 +1,5 @@
-"""IGES names: the XCAF writer's name entities put in a fixed order without moving any name."""
+"""Named CAD files are the same for the same shapes: IGES name entities in a fixed order without
+moving any name, STEP assembly occurrences numbered per file."""
 from __future__ import annotations
 
 from bonecad.io import brep
@@ -37,3 +38,15 @@ def test_name_entities_follow_the_named_entities_and_every_name_stays_on_its_ent
     assert _face_names(model) == before
     slots = [model.Entity(i) for i in range(1, model.NbEntities() + 1) if model.Entity(i).TypeNumber() == 406]
     assert [s.Value().ToCString() for s in slots] == before
+
+
+def test_a_named_tree_written_twice_in_one_process_gives_the_same_files(tmp_path):
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox, BRepPrimAPI_MakeSphere
+
+    from bonecad.io.cad import write_iges, write_step
+
+    tree = ("parts", [("box", BRepPrimAPI_MakeBox(10.0, 20.0, 30.0).Shape()),
+                      ("more", [("sphere", BRepPrimAPI_MakeSphere(5.0).Shape())])])
+    for write, suffix in ((write_step, "step"), (write_iges, "iges")):
+        first = write(tree, tmp_path / f"first.{suffix}").read_bytes()
+        assert write(tree, tmp_path / f"second.{suffix}").read_bytes() == first, suffix

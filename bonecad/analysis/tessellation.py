@@ -32,10 +32,10 @@ def _setting(key: str):
 class TessellationSettings:
     """Tolerances of the tessellation (mm, rad); defaults from ``[analysis]`` in defaults.toml.
 
-    deflection_mm : chord error aimed at (``tessellation_deflection_mm``). It only
-        bounds distances that are not refined on the exact surface (a tiny share)
-        and sets how close the Newton start is; the chord error is measured and
-        reported, never assumed.
+    deflection_mm : chord error aimed at (``tessellation_deflection_mm``). It
+        bounds distances that are not refined on the exact surface (a tiny share
+        of the samples; the colour map's vertex distances) and sets how close the
+        Newton start is; the chord error is measured and reported, never assumed.
     angular_deflection_rad : largest turn of a surface normal along one edge.
     coverage_tolerance : relative area shortfall accepted per face. A chordal
         tessellation is short by about deflection/radius (1e-3 for 0.02 mm on a

@@ -255,7 +255,7 @@ def stamp_iges_header(writer) -> None:
 
 def order_name_entities(model) -> None:
     """Give an IGES model's name entities (406 form 15) a fixed order: the k-th of them names
-    the k-th named entity, the unreferenced ones follow by name.
+    the k-th named entity.
 
     OpenCascade's XCAF writer creates them in the order of a hash map keyed by memory address,
     which changes from run to run; everything else it writes in a fixed order. The entities stay
@@ -263,6 +263,11 @@ def order_name_entities(model) -> None:
     and each named entity is pointed at its new name entity. (``model.Number`` of an entity is 0
     through OCP, so entities are matched by the identity of their Python wrappers, which pybind11
     keeps one per object while they are referenced.)
+
+    Only the layout the XCAF writer makes is reordered: each named entity has exactly one
+    property, its name, and each name entity names one entity. Anything else (OpenCascade 7.9's
+    ``RemoveProperty`` crashes or does nothing on an entity with several properties) is left in
+    OpenCascade's order, with a warning: the file stays valid, only its order may vary.
     """
     from OCP.TCollection import TCollection_HAsciiString
 
@@ -277,16 +282,16 @@ def order_name_entities(model) -> None:
         found.Start()
         while found.More():
             if id(found.Value()) in is_slot:
+                if entity.NbProperties() != 1:
+                    log.warning("IGES: an entity has a name among several properties; names left in "
+                                "OpenCascade's order")
+                    return
                 named.append((entity, found.Value()))
             found.Next()
-    referenced = {id(name) for _, name in named}
-    values = [name.Value().ToCString() for _, name in named]
-    values += sorted(e.Value().ToCString() for e in slots if id(e) not in referenced)
-    if len(values) != len(slots):
-        # a name entity shared by several entities (the XCAF writer makes one per named shape):
-        # the file stays valid, only its order is left to OpenCascade
-        log.warning("IGES: a name entity is shared by several entities; names left in OpenCascade's order")
+    if len({id(name) for _, name in named}) != len(named) or len(named) != len(slots):
+        log.warning("IGES: a name entity names no entity or several; names left in OpenCascade's order")
         return
+    values = [name.Value().ToCString() for _, name in named]
     for entity, old in named:
         entity.RemoveProperty(old)
     for (entity, _), slot in zip(named, slots):

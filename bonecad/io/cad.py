@@ -2,7 +2,7 @@
 
 A tree is ``(name, shape)`` or ``(name, [tree, ...])``; it becomes an XCAF
 assembly, so CAD programs show every group and entity by its name (STEP
-PRODUCT names, IGES entity labels). Writes go through ``staged_file`` so a
+PRODUCT names; IGES name properties, on the entities but not on the groups). Writes go through ``staged_file`` so a
 failed export leaves nothing behind; headers carry a fixed timestamp so the
 same input gives the same bytes. Plain OCP: build123d is only needed to read
 a file back (``read_step``), which keeps ~1.5 s of imports off every run.
@@ -127,10 +127,26 @@ def write_step(tree: Tree, path: str | Path) -> Path:
         stamp_step_header(writer.Writer().Model(), tree[0])
         if not writer.Transfer(_assembly(tree), STEPControl_AsIs):
             raise KernelError(f"OpenCascade could not translate the shapes for STEP file {path}")
+        number_occurrences(writer.Writer().Model())
         with staged_file(path) as tmp:
             if writer.Write(str(tmp)) != IFSelect_RetDone:
                 raise KernelError(f"OpenCascade could not write STEP file {path}")
     return path
+
+
+def number_occurrences(model) -> None:
+    """Number a STEP model's assembly occurrences (NEXT_ASSEMBLY_USAGE_OCCURRENCE ids) 1, 2, ... in
+    model order: OpenCascade takes them from a counter of the whole process, so a second file
+    written by the same process would differ from the first."""
+    from OCP.StepRepr import StepRepr_NextAssemblyUsageOccurrence
+    from OCP.TCollection import TCollection_HAsciiString
+
+    count = 0
+    for index in range(1, model.NbEntities() + 1):
+        entity = model.Value(index)
+        if isinstance(entity, StepRepr_NextAssemblyUsageOccurrence):
+            count += 1
+            entity.SetId(TCollection_HAsciiString(str(count)))
 
 
 def write_iges(tree: Tree, path: str | Path) -> Path:

@@ -409,7 +409,7 @@ def write_dicom_series(volume: CTVolume, folder: str | Path, *, series_descripti
     # and the same volume gives the same files
     content = hashlib.blake2b(stored.tobytes(), digest_size=16)
     content.update(np.ascontiguousarray(affine, dtype=np.float64).tobytes())
-    content.update(series_description.encode())
+    content.update(repr((stored.shape, sorted(volume.missing_slices), series_description)).encode())
     key = content.hexdigest()
     study_uid, series_uid, frame_uid = (generate_uid(entropy_srcs=[key, role]) for role in ("study", "series", "frame"))
     missing = set(volume.missing_slices)
