@@ -39,6 +39,7 @@ import numpy as np
 
 from ..config import load_config
 from ..errors import InputError
+from ..mesh.sampling import triangle_areas
 from .closest import TriangleLocator, vertex_normals
 from .nurbs_eval import project_faces
 from .statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
@@ -73,7 +74,7 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, *, seed:
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise InputError(f"need vertices (n, 3) and faces (m, 3), got {vertices.shape}, {faces.shape}")
     tri = vertices[faces]
-    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    areas = triangle_areas(vertices, faces)
     total = areas.sum()
     if not total > 0:
         raise InputError("mesh has zero area")

@@ -30,6 +30,7 @@ from matplotlib.figure import Figure
 
 from ..errors import InputError
 from ..io.output import staged_file
+from ..mesh.sampling import triangle_areas
 from .deviation import sample_surface
 from .tessellation import Tessellation
 
@@ -169,8 +170,7 @@ def _view_bounds(vertices: np.ndarray, axes: np.ndarray, margin: float = 0.03):
 
 
 def _dense_samples(vertices, triangles, pixel_mm: float, per_pixel: float, seed: int, cap: int = 2_000_000):
-    tri = vertices[triangles]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    area = triangle_areas(vertices, triangles).sum()
     count = int(min(cap, max(10_000, per_pixel * area / pixel_mm**2)))
     return sample_surface(vertices, triangles, count, seed=seed)
 

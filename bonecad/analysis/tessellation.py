@@ -18,6 +18,7 @@ from functools import cached_property
 import numpy as np
 
 from ..errors import InputError, KernelError
+from ..mesh.sampling import triangle_areas
 from .closest import vertex_normals
 from .nurbs_eval import SplineSurface, SurfaceSet, project, project_faces
 
@@ -140,8 +141,7 @@ class Tessellation:
         return float(chord.max())
 
     def triangle_areas(self) -> np.ndarray:
-        tri = self.vertices[self.triangles]
-        return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        return triangle_areas(self.vertices, self.triangles)
 
 
 def shape_faces(shape) -> list:
@@ -469,9 +469,7 @@ def _refined_grid(sset: SurfaceSet, grid_faces: list[int], reversed_faces: np.nd
         s, su, sv = sset.evaluate(nf, uv[:, 0], uv[:, 1])
         batches.append((uv, tri, nf, tf, s, su, sv))
         area[todo] = batch_area[todo]
-        t = s[tri]
-        mesh = np.bincount(tf, weights=0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1),
-                           minlength=count)[todo]
+        mesh = np.bincount(tf, weights=triangle_areas(s, tri), minlength=count)[todo]
         exact = area[todo]
         short = (exact > 0) & ((exact - mesh) / np.where(exact > 0, exact, 1.0) > settings.allowed_shortfall(exact))
         if not short.any() or attempt == 3:
@@ -595,8 +593,7 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
     missing = np.linalg.norm(normals, axis=1) == 0
     if missing.any():
         normals[missing] = vertex_normals(vertices, triangles)[missing]
-    t = vertices[triangles]
-    tri_area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    tri_area = triangle_areas(vertices, triangles)
     area_mesh = np.bincount(tri_face_all, weights=tri_area, minlength=count)
     short = (area_exact > 0) & (
         (area_exact - area_mesh) / np.where(area_exact > 0, area_exact, 1.0) > settings.allowed_shortfall(area_exact)
@@ -649,8 +646,7 @@ def brepmesh_face(face, index: int, surface, native: bool, is_reversed: bool, se
     tri = np.array([poly.Triangle(i).Get() for i in range(1, poly.NbTriangles() + 1)], dtype=np.int64) - 1
     if is_reversed:
         tri = tri[:, [0, 2, 1]]
-    t = nodes[tri]
-    mesh_area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+    mesh_area = triangle_areas(nodes, tri).sum()
     exact = exact_face_area(face, settings.area_rel_eps)
     if exact > 0 and (exact - mesh_area) / exact > settings.allowed_shortfall(exact):
         raise KernelError(

@@ -16,6 +16,7 @@ import numpy as np
 from ..config import load_config
 from ..errors import FitError, InputError
 from ..mesh.bone_mesh import BoneMesh
+from ..mesh.sampling import triangle_areas
 from ..mesh.sections import plane_basis, section_mesh, section_stack
 from .ellipse import fit_ellipse
 
@@ -137,7 +138,7 @@ class AnatomicalFrame:
 def _area_weighted_axis(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Centroid and principal direction of the surface (area-weighted triangle centroids)."""
     tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = triangle_areas(vertices, faces)
     centres = tri.mean(axis=1)
     centre = (centres * area[:, None]).sum(axis=0) / area.sum()
     d = centres - centre

@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from .sampling import triangle_areas
 
 
 @dataclass(frozen=True)
@@ -46,5 +47,4 @@ class BoneMesh:
 
     def face_areas(self) -> np.ndarray:
         """(m,) triangle areas in mm^2."""
-        tri = self.vertices[self.faces]
-        return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        return triangle_areas(self.vertices, self.faces)
