@@ -26,11 +26,6 @@ from bonecad.tspline_model import build_tspline_model
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 
 
-def share_within(result, mm: float) -> float:
-    d, w = np.abs(result.deviation_mm), result.weights
-    return float(w[d <= mm].sum() / w.sum())
-
-
 def main(paths: list[Path]) -> None:
     for path in paths:
         bone = bonecad.load_bone(path)
@@ -62,10 +57,10 @@ def main(paths: list[Path]) -> None:
             print(f"  solid vs mesh: analysis refused the tessellation ({dev_error})")
         else:
             m2c, c2m = dev.mesh_to_cad, dev.cad_to_mesh
-            print(f"  solid vs mesh (100 k samples): mesh->CAD within 0.25 mm {share_within(m2c, 0.25):.4f}, "
+            print(f"  solid vs mesh (100 k samples): mesh->CAD within 0.25 mm {m2c.share_within(0.25):.4f}, "
                   f"max {np.abs(m2c.deviation_mm).max():.3f} mm, "
                   f"RMS {np.sqrt(np.average(m2c.deviation_mm**2, weights=m2c.weights)):.4f} mm; "
-                  f"CAD->mesh within 0.25 mm {share_within(c2m, 0.25):.4f}, max {np.abs(c2m.deviation_mm).max():.3f} mm")
+                  f"CAD->mesh within 0.25 mm {c2m.share_within(0.25):.4f}, max {np.abs(c2m.deviation_mm).max():.3f} mm")
         for cap in model.caps:
             print(f"  {cap.end} cap: ring normal angle max {cap.ring_angle_deg[0]:.2e} deg (G1), "
                   f"pole normal spread {cap.pole_spread_deg:.3f} deg")

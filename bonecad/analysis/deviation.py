@@ -108,6 +108,10 @@ class DirectionResult:
     region_stats: dict[str, DeviationStats] = field(default_factory=dict)
     region_histograms: dict[str, Histogram] = field(default_factory=dict)
 
+    def share_within(self, limit_mm: float) -> float:
+        """Area share of the samples with |deviation| <= ``limit_mm`` (mm), exact (not band-resolved)."""
+        return float(self.weights[np.abs(self.deviation_mm) <= limit_mm].sum() / self.weights.sum())
+
     def to_dict(self) -> dict:
         return {
             "samples": int(len(self.deviation_mm)),

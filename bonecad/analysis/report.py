@@ -99,12 +99,6 @@ def _plain(value):
     return value
 
 
-def _share_within(dev: DeviationResult, limit: float) -> float:
-    d = dev.mesh_to_cad
-    w = d.weights
-    return float(w[np.abs(d.deviation_mm) <= limit].sum() / w.sum())
-
-
 def comparison_rows(models: list[ModelReport]) -> list[dict[str, Any]] | None:
     """NURBS-versus-T-spline rows (None unless both 'nurbs' and 'tspline' are present)."""
     by_name = {m.name: m for m in models}
@@ -134,7 +128,7 @@ def comparison_rows(models: list[ModelReport]) -> list[dict[str, Any]] | None:
             {
                 "quantity": f"surface within {limit:g} mm",
                 **{
-                    n: (_share_within(by_name[n].deviation, limit) if by_name[n].deviation else None)
+                    n: (by_name[n].deviation.mesh_to_cad.share_within(limit) if by_name[n].deviation else None)
                     for n in ("nurbs", "tspline")
                 },
             }

@@ -71,12 +71,6 @@ class Histogram:
             + [f">= {e[-1]:g}"]
         )
 
-    def share_within(self, limit_mm: float) -> float:
-        """Share in bands lying wholly inside [-limit_mm, +limit_mm] (band-resolution)."""
-        e = self.edges_mm
-        inside = (e[:-1] >= -limit_mm - 1e-12) & (e[1:] <= limit_mm + 1e-12)
-        return float(self.shares[1:-1][inside].sum())
-
     def to_dict(self) -> dict[str, Any]:
         return {"edges_mm": self.edges_mm.tolist(), "shares": self.shares.tolist()}
 

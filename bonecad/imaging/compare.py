@@ -1,4 +1,5 @@
-"""Surface-to-surface distance for checking a segmentation against the mesh it came from."""
+"""Surface-to-surface distance for checking a segmentation against the mesh it came from; the
+voxel staircase a segmentation without sub-voxel interpolation makes of a smooth bone."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -39,6 +40,25 @@ def distance_to_surface(mesh, points: np.ndarray) -> np.ndarray:
     from ..analysis.closest import TriangleLocator
 
     return TriangleLocator(mesh.vertices, mesh.faces).query(points).distance
+
+
+def staircase_mesh(vertices: np.ndarray, faces: np.ndarray, voxel_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The voxel staircase of a closed mesh: marching cubes of its binary mask on a ``voxel_mm`` grid.
+
+    This is what a segmentation without sub-voxel interpolation gives (the JIA
+    MRI tibia: vertices on a half-voxel lattice), with the smooth surface it
+    came from known. Returns (vertices (n, 3) mm, faces (m, 3)), outward.
+    """
+    from skimage.measure import marching_cubes
+
+    from .voxelize import occupancy
+
+    vertices = np.asarray(vertices, dtype=np.float64)
+    origin = vertices.min(axis=0) - 2.0 * voxel_mm
+    shape = tuple(int(n) for n in np.ceil((vertices.max(axis=0) - origin) / voxel_mm)[::-1] + 3)
+    mask = occupancy(vertices, faces, origin, voxel_mm, shape) >= 0.5
+    grid_vertices, grid_faces, _, _ = marching_cubes(mask.astype(np.float32), 0.5, allow_degenerate=False)
+    return grid_vertices[:, ::-1] * voxel_mm + origin, grid_faces.astype(np.int64)
 
 
 def largest_body(mesh):
