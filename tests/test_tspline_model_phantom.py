@@ -22,6 +22,7 @@ def model(phantom, phantom_frame):
 def test_fit_meets_the_bars_with_local_refinement(model):
     stats = model.fit.stats
     assert model.fit.converged, model.fit.stopped
+    assert model.staircase_voxel_mm == 0.0  # a smooth mesh: no lattice
     assert stats.share_within >= 0.99 and stats.max_mm <= 1.0 and stats.rms_mm <= 0.1
     ts = model.tspline
     assert check_suitability(ts.mesh).suitable

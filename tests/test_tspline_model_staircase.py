@@ -55,6 +55,7 @@ def test_fit_to_the_staircase_recovers_the_bone(truth, staircase):
     frame = bonecad.anatomical_frame(staircase)
     model = build_tspline_model(staircase, frame, contour_curves(staircase, frame), compare_tensor_product=False)
     assert "up to the data's noise" in model.fit.stopped, model.fit.stopped
+    assert model.summary()["staircase_voxel_mm"] == pytest.approx(1.0)
     # Chasing the steps to the 20000-point budget took 19484 points and left the
     # surface farther from the bone (92 % within 0.25 mm): the noise stop needs 1228.
     assert model.control_points < 3000

@@ -54,6 +54,8 @@ class TSplineModel:
         B-spline fitted to the same tolerance (None when not computed);
         tensor_product_converged : whether that fit met the tolerances.
     fit : the adaptive fit (final stats, history, why it stopped).
+    staircase_voxel_mm : the voxel size when the mesh is a voxel staircase
+        (vertices on a lattice: its steps then count as the data's noise), else 0.
     shape : OCP TopoDS_Shape (closed solid), scanner coordinates; face_names :
         (name, TopoDS_Face) of every face of it ("distal", "shaft", "proximal",
         "distal_apex_cap", "proximal_apex_cap").
@@ -70,6 +72,7 @@ class TSplineModel:
     shape: object
     face_names: tuple[tuple[str, object], ...]
     frame: AnatomicalFrame
+    staircase_voxel_mm: float = 0.0
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -98,6 +101,7 @@ class TSplineModel:
             "fit": self.fit.stats.to_dict(),
             "fit_converged": self.fit.converged,
             "fit_stopped": self.fit.stopped,
+            "staircase_voxel_mm": self.staircase_voxel_mm,
             "fit_history": [h.to_dict() for h in self.fit.history],
             "skin_residual_mm": {"rms": round(self.skin_residual_mm[0], 4), "max": round(self.skin_residual_mm[1], 4)},
             "parameterisation": self.parameterisation.to_dict(),
@@ -231,15 +235,20 @@ def build_tspline_model(
     clock = time.perf_counter()
     # the noise of the fit's own points (the same spacing on every mesh: the same scale);
     # a staircase (voxel-mask mesh) shows its lattice in scanner coordinates
+    voxel = voxel_step_mm(bone.vertices)
+    if voxel:
+        log.info("the mesh is a %.2f mm voxel staircase (vertices on a lattice): its steps count as noise", voxel)
     noise_job = (jobs or JobGroup(background=False)).start(
-        local_noise_mm, vertices, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel_step_mm(bone.vertices))
+        local_noise_mm, vertices, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel)
     s0, t0, _ = initial_parameters(ts0, pts)
     noise = noise_job.result()[0][keep]
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
                        constraints=rings, noise=noise)
     timings["fit"] = time.perf_counter() - clock
     if not fit.converged:
-        log.warning("T-spline fit stopped before the tolerances held: %s (%s)", fit.stopped, fit.stats.to_dict())
+        staircase = f"; the mesh is a {voxel:.2f} mm voxel staircase" if voxel else ""
+        log.warning("T-spline fit stopped before the tolerances held: %s (%s)%s", fit.stopped, fit.stats.to_dict(),
+                    staircase)
 
     do_tp = bool(st["compare_tensor_product"]) if compare_tensor_product is None else compare_tensor_product
     tp_fit = None
@@ -276,6 +285,7 @@ def build_tspline_model(
         shape=shape,
         face_names=tuple(face_names),
         frame=frame,
+        staircase_voxel_mm=round(voxel, 4),
         timings_s=timings,
     )
 
