@@ -34,8 +34,7 @@ def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 
 def bands(direction) -> tuple[list[float], float]:
-    dev, w = np.abs(direction.deviation_mm), direction.weights
-    return [float(w[dev <= b].sum() / w.sum()) for b in BANDS_MM], float(dev.max())
+    return [direction.share_within(b) for b in BANDS_MM], float(np.abs(direction.deviation_mm).max())
 
 
 def main() -> None:

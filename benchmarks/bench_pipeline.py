@@ -115,9 +115,9 @@ def run(path: Path) -> None:
         print(f"  {'total (wall, in this process)':<32} {total:7.2f} s")
         for name, report in result.reports.items():
             m2c = report.deviation.mesh_to_cad
-            d, w = np.abs(m2c.deviation_mm), m2c.weights
             print(f"  {name}: {report.info.get('control_points')} control points; mesh->CAD within 0.25 mm "
-                  f"{w[d <= 0.25].sum() / w.sum():.4f}, max {d.max():.3f} mm, RMS {m2c.stats.rms_mm:.4f} mm")
+                  f"{m2c.share_within(0.25):.4f}, max {np.abs(m2c.deviation_mm).max():.3f} mm, "
+                  f"RMS {m2c.stats.rms_mm:.4f} mm")
             print(f"    {name}.step: {reread(Path(out) / f'{name}.step')}")
             print(f"    seams: {seams(report.continuity)}")
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

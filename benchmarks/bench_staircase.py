@@ -30,6 +30,7 @@ import numpy as np
 import bonecad
 from bonecad.analysis import TessellationSettings, shape_deviation
 from bonecad.analysis.deviation import sample_surface
+from bonecad.analysis.statistics import share_within
 from bonecad.config import load_config
 from bonecad.curves.contours import contour_curves
 from bonecad.imaging.compare import distance_to_surface, staircase_mesh
@@ -63,7 +64,7 @@ def main(paths: list[Path], voxels_mm: list[float]) -> None:
             d = distance_to_surface(truth.to_trimesh(), samples.points)
             w = samples.weights
             print(f"\n{path.name}, {voxel:g} mm voxels: staircase of {stair.triangle_count} triangles")
-            print(f"  staircase vs truth: within {WITHIN_MM} mm {w[d <= WITHIN_MM].sum() / w.sum():.4f}, "
+            print(f"  staircase vs truth: within {WITHIN_MM} mm {share_within(d, w, WITHIN_MM):.4f}, "
                   f"max {d.max():.3f}, RMS {np.sqrt(np.average(d**2, weights=w)):.3f} mm")
             frame = bonecad.anatomical_frame(stair)
             contours = contour_curves(stair, frame)

@@ -42,7 +42,7 @@ from ..errors import InputError
 from ..mesh.sampling import triangle_areas
 from .closest import TriangleLocator, vertex_normals
 from .nurbs_eval import project_faces
-from .statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
+from .statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram, share_within
 from .tessellation import Tessellation, TessellationSettings, tessellate
 
 #: the anatomical regions a caller can label samples with
@@ -110,7 +110,7 @@ class DirectionResult:
 
     def share_within(self, limit_mm: float) -> float:
         """Area share of the samples with |deviation| <= ``limit_mm`` (mm), exact (not band-resolved)."""
-        return float(self.weights[np.abs(self.deviation_mm) <= limit_mm].sum() / self.weights.sum())
+        return share_within(self.deviation_mm, self.weights, limit_mm)
 
     def to_dict(self) -> dict:
         return {

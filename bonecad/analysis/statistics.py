@@ -123,6 +123,13 @@ def weighted_percentiles(values: np.ndarray, weights: np.ndarray, percents) -> n
     return v[idx]
 
 
+def share_within(deviation_mm: np.ndarray, weights: np.ndarray, limit_mm: float) -> float:
+    """Area share (weights: mm^2 per sample) of the samples with |deviation| <= ``limit_mm`` (mm)."""
+    d = np.abs(np.asarray(deviation_mm, dtype=np.float64))
+    w = np.asarray(weights, dtype=np.float64)
+    return float(w[d <= limit_mm].sum() / w.sum())
+
+
 def deviation_stats(deviation_mm: np.ndarray, weights: np.ndarray | None = None) -> DeviationStats:
     """Area-weighted statistics of signed deviations (weights: mm^2 each sample stands for)."""
     d = np.asarray(deviation_mm, dtype=np.float64)

@@ -21,9 +21,8 @@ def to_geom_curve(curve: BSplineCurve):
 
     from ..io.brep import array1
 
-    poles = TColgp_Array1OfPnt(1, curve.count)
-    for i, p in enumerate(curve.control_points, start=1):
-        poles.SetValue(i, gp_Pnt(*map(float, p)))
+    poles = array1([gp_Pnt(*p) for p in np.asarray(curve.control_points, dtype=np.float64).tolist()],
+                   TColgp_Array1OfPnt)
     if curve.periodic:
         values = np.asarray(curve.knots, dtype=np.float64)
         counts = np.ones(len(values), dtype=int)
