@@ -25,10 +25,10 @@ import numpy as np
 from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
 from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
-from bonecad.analysis.closest import TriangleLocator
-from bonecad.analysis.continuity import seam_continuity
+from bonecad.mesh.closest import TriangleLocator
+from bonecad.occ.continuity import seam_continuity
 from bonecad.analysis.deviation import sample_surface, shape_deviation, signed_distance_to_shape
-from bonecad.analysis.tessellation import TessellationSettings, tessellate
+from bonecad.occ.tessellate import TessellationSettings, tessellate
 from bonecad.config import load_config
 
 RADIUS = 40.0
@@ -84,7 +84,7 @@ def bezier_shell(shape):
     from OCP.GeomConvert import GeomConvert_BSplineSurfaceToBezierSurface
     from OCP.TColGeom import TColGeom_Array2OfBezierSurface
 
-    from bonecad.analysis.tessellation import shape_faces
+    from bonecad.occ.tessellate import shape_faces
 
     sewing = BRepBuilderAPI_Sewing(1e-4)
     for face in shape_faces(shape):
@@ -104,9 +104,9 @@ def bench_models() -> None:
 
     import bonecad
     from bonecad.analysis.model import analyse_model
-    from bonecad.analysis.tessellation import shape_faces
-    from bonecad.curves.contours import contour_curves
-    from bonecad.nurbs.model import build_nurbs
+    from bonecad.occ.tessellate import shape_faces
+    from bonecad.contours.curves import contour_curves
+    from bonecad.nurbs_model.model import build_nurbs
 
     bone = bonecad.phantom_tibia()
     frame = bonecad.anatomical_frame(bone)

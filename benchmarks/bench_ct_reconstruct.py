@@ -10,9 +10,9 @@ from pathlib import Path
 import bonecad
 from bonecad.analysis.deviation import shape_deviation
 from bonecad.analysis.model import region_labels
-from bonecad.curves.contours import contour_curves
+from bonecad.contours.curves import contour_curves
 from bonecad.imaging import mesh_to_ct, segment_bone
-from bonecad.nurbs.model import build_nurbs
+from bonecad.nurbs_model.model import build_nurbs
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 

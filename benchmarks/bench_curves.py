@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 import bonecad
-from bonecad.curves.contours import contour_curves
+from bonecad.contours.curves import contour_curves
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 

@@ -21,8 +21,8 @@ import numpy as np
 
 import bonecad
 from bonecad.analysis import TessellationSettings, shape_deviation
-from bonecad.curves.contours import contour_curves
-from bonecad.nurbs import build_nurbs
+from bonecad.contours.curves import contour_curves
+from bonecad.nurbs_model import build_nurbs
 
 DATA = Path(os.environ.get("BONECAD_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "tibia"
 BANDS_MM = (0.1, 0.25, 0.5, 1.0)

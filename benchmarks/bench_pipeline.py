@@ -39,7 +39,7 @@ def reread(path: Path) -> str:
     from OCP.TopAbs import TopAbs_SOLID
     from OCP.TopExp import TopExp_Explorer
 
-    from bonecad.io.brep import faces, free_edge_count, is_valid, volume_mm3
+    from bonecad.occ.brep import faces, free_edge_count, is_valid, volume_mm3
 
     reader = STEPControl_Reader()
     reader.ReadFile(str(path))
@@ -91,7 +91,7 @@ def command(path: Path, repeats: int) -> None:
         with tempfile.TemporaryDirectory() as out:
             usage = resource.getrusage(resource.RUSAGE_CHILDREN)
             start = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "bonecad.cli", "reconstruct", str(path), "--out", out, "-q"],
+            subprocess.run([sys.executable, "-m", "bonecad.run.cli", "reconstruct", str(path), "--out", out, "-q"],
                            check=True, stdout=subprocess.DEVNULL)
             walls.append(time.perf_counter() - start)
             after_usage = resource.getrusage(resource.RUSAGE_CHILDREN)

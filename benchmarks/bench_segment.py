@@ -44,7 +44,7 @@ def make_large_volume(path: Path, mesh_path: Path) -> None:
     import trimesh
 
     from bonecad.imaging.phantom import AIR_HU, mesh_to_ct
-    from bonecad.io.volume import CTVolume, write_nifti
+    from bonecad.imaging.volume import CTVolume, write_nifti
 
     mesh = trimesh.load(mesh_path)
     leg = mesh_to_ct(mesh.vertices, mesh.faces, voxel_mm=VOXEL_MM, noise_hu=30.0, margin_mm=15.0)
@@ -64,7 +64,7 @@ def make_large_volume(path: Path, mesh_path: Path) -> None:
 def segment_file(path: Path) -> dict:
     """Read and segment ``path`` in this process; seconds and peak RSS (MB)."""
     from bonecad.imaging.segment import segment_bone
-    from bonecad.io.volume import read_volume
+    from bonecad.imaging.volume import read_volume
 
     t0 = time.perf_counter()
     volume = read_volume(path)

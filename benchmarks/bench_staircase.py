@@ -32,7 +32,7 @@ from bonecad.analysis import TessellationSettings, shape_deviation
 from bonecad.analysis.deviation import sample_surface
 from bonecad.analysis.statistics import share_within
 from bonecad.config import load_config
-from bonecad.curves.contours import contour_curves
+from bonecad.contours.curves import contour_curves
 from bonecad.imaging.compare import distance_to_surface, staircase_mesh
 from bonecad.mesh.intake import prepare_bone
 from bonecad.tspline_model import build_tspline_model
@@ -85,5 +85,5 @@ if __name__ == "__main__":
     parser.add_argument("meshes", nargs="*", type=Path)
     parser.add_argument("--voxel-mm", type=float, nargs="+", default=[1.0])
     args = parser.parse_args()
-    with threadpool_limits(limits=1, user_api="blas"):  # as in `reconstruct` (bonecad.parallel): same figures
+    with threadpool_limits(limits=1, user_api="blas"):  # as in `reconstruct` (bonecad.run.executor): same figures
         main(args.meshes or [DATA / name for name in SMOOTH_MESHES], args.voxel_mm)

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from bonecad.tspline import TMesh, TSpline, check_suitability, extract, refine_elements
+from bonecad.splines.tspline import TMesh, TSpline, check_suitability, extract, refine_elements
 
 
 def tube(n_s: int, n_t: int, *, radius_mm: float = 20.0, length_mm: float = 300.0) -> TSpline:
@@ -59,8 +59,8 @@ def main() -> None:
     ext = timed("Bezier extraction incl. ray casting (~10 k elements)", 2.0, fresh_extraction)
     print(f"    {ext.n_elements} elements, {len(ext.pair_anchor)} element-function pairs")
 
-    from bonecad.io.brep import is_valid, sew
-    from bonecad.tspline import occ
+    from bonecad.occ.brep import is_valid, sew
+    from bonecad.occ import tspline as occ
 
     mid = tube(64, 80)
     mid = refine_elements(mid, rng.choice(mid.extraction.n_elements, 40, replace=False)).tspline

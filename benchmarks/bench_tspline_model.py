@@ -19,7 +19,7 @@ import numpy as np
 
 import bonecad
 from bonecad.analysis import TessellationSettings, shape_deviation
-from bonecad.curves.contours import contour_curves
+from bonecad.contours.curves import contour_curves
 from bonecad.errors import KernelError
 from bonecad.tspline_model import build_tspline_model
 
@@ -72,5 +72,5 @@ if __name__ == "__main__":
     from threadpoolctl import threadpool_limits
 
     args = [Path(a) for a in sys.argv[1:]] or sorted(DATA.glob("*.stl"))
-    with threadpool_limits(limits=1, user_api="blas"):  # as in `reconstruct` (bonecad.parallel): same figures
+    with threadpool_limits(limits=1, user_api="blas"):  # as in `reconstruct` (bonecad.run.executor): same figures
         main(args)

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import importlib
 
-__version__ = "0.1.0"
+from bonecad._version import __version__
 
-from .anatomy.frame import AnatomicalFrame, anatomical_frame
-from .config import load_config
-from .errors import BonecadError, FitError, InputError, KernelError
-from .mesh.bone_mesh import BoneMesh
-from .mesh.intake import load_bone, prepare_bone
-from .pipeline import Reconstruction, reconstruct
+from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
+from bonecad.config import load_config
+from bonecad.errors import BonecadError, FitError, InputError, KernelError
+from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.mesh.intake import load_bone, prepare_bone
+from bonecad.run.pipeline import Reconstruction, reconstruct
 
 __all__ = [
     "AnatomicalFrame",

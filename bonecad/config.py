@@ -16,7 +16,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-from .errors import InputError
+from bonecad.errors import InputError
 
 _DEFAULTS_CACHE: dict[str, Any] | None = None
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonecad.analysis.continuity import ContinuityTolerances, knot_continuity, seam_continuity
-from bonecad.analysis.render import VIEWS, render_tessellation_normals, screen_axes, zebra_image, zebra_png
-from bonecad.analysis.tessellation import tessellate
+from bonecad.occ.continuity import ContinuityTolerances, knot_continuity, seam_continuity
+from bonecad.render.figures import VIEWS, render_tessellation_normals, screen_axes, zebra_image, zebra_png
+from bonecad.occ.tessellate import tessellate
 from bonecad.errors import InputError
 
 
@@ -162,8 +162,8 @@ def test_batched_second_derivatives_match_opencascade(kind):
     from OCP.BRepLProp import BRepLProp_SLProps
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
-    from bonecad.analysis.nurbs_eval import SurfaceSet
-    from bonecad.analysis.tessellation import face_spline_surface, shape_faces
+    from bonecad.splines.evaluate import SurfaceSet
+    from bonecad.occ.tessellate import face_spline_surface, shape_faces
 
     if kind == "rational sphere":
         face = shape_faces(BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(40.0).Shape(), True).Shape())[0]

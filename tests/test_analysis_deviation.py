@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonecad.analysis.closest import TriangleLocator
+from bonecad.mesh.closest import TriangleLocator
 from bonecad.analysis.deviation import sample_shape, sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.analysis.statistics import band_edges, deviation_stats, histogram, weighted_percentiles
-from bonecad.analysis.tessellation import TessellationSettings, tessellate
+from bonecad.occ.tessellate import TessellationSettings, tessellate
 from bonecad.config import load_config
 from bonecad.errors import InputError, KernelError
 
@@ -37,7 +37,7 @@ def test_faces_are_native_bspline(sphere):
     from OCP.BRep import BRep_Tool
     from OCP.Geom import Geom_BSplineSurface
 
-    from bonecad.analysis.tessellation import shape_faces
+    from bonecad.occ.tessellate import shape_faces
 
     assert all(isinstance(BRep_Tool.Surface_s(f), Geom_BSplineSurface) for f in shape_faces(sphere))
 
@@ -221,7 +221,7 @@ def test_closest_points_match_brute_force():
     points = rng.uniform([-2, -2, -3], [12, 12, 8], size=(400, 3))
     got = TriangleLocator(vertices, tris).query(points)
     # brute force: every triangle for every point
-    from bonecad.analysis.closest import closest_point_on_triangles
+    from bonecad.mesh.closest import closest_point_on_triangles
 
     t = vertices[tris]
     rep = np.repeat(points, len(tris), axis=0)

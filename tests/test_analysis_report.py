@@ -9,13 +9,13 @@ import json
 import numpy as np
 import pytest
 
-from bonecad.analysis.continuity import knot_continuity, seam_continuity
+from bonecad.occ.continuity import knot_continuity, seam_continuity
 from bonecad.analysis.deviation import shape_deviation
-from bonecad.analysis.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, compare_histogram
-from bonecad.analysis.render import deviation_map_png, histogram_png
-from bonecad.analysis.report import SCHEMA, ModelReport, write_report
+from tests.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, compare_histogram
+from bonecad.render.figures import deviation_map_png, histogram_png
+from bonecad.export.report import SCHEMA, ModelReport, write_report
 from bonecad.analysis.statistics import Histogram
-from bonecad.analysis.tessellation import TessellationSettings, brepmesh_face, face_spline_surface, tessellate
+from bonecad.occ.tessellate import TessellationSettings, brepmesh_face, face_spline_surface, tessellate
 from bonecad.errors import InputError
 
 RADIUS = 10.0

@@ -2,7 +2,7 @@
 moving any name, STEP assembly occurrences numbered per file."""
 from __future__ import annotations
 
-from bonecad.io import brep
+from bonecad.occ import brep
 
 
 def _face_names(model) -> list[str]:
@@ -43,7 +43,7 @@ def test_name_entities_follow_the_named_entities_and_every_name_stays_on_its_ent
 def test_a_named_tree_written_twice_in_one_process_gives_the_same_files(tmp_path):
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox, BRepPrimAPI_MakeSphere
 
-    from bonecad.io.cad import write_iges, write_step
+    from bonecad.occ.exchange import write_iges, write_step
 
     tree = ("parts", [("box", BRepPrimAPI_MakeBox(10.0, 20.0, 30.0).Shape()),
                       ("more", [("sphere", BRepPrimAPI_MakeSphere(5.0).Shape())])])

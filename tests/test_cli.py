@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from bonecad.cli import main
-from bonecad.io.cad import read_step
+from bonecad.run.cli import main
+from bonecad.occ.exchange import read_step
 
 from .conftest import REAL_MESHES, real_mesh_params
 
@@ -67,7 +67,7 @@ def test_metres_exit_2_names_units_option(phantom, tmp_path, capsys):
 
 
 def test_console_script_help():
-    result = subprocess.run([sys.executable, "-m", "bonecad.cli", "--help"], capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-m", "bonecad.run.cli", "--help"], capture_output=True, text=True)
     assert result.returncode == 0
     for command in ("inspect", "frame", "demo"):
         assert command in result.stdout
@@ -82,7 +82,7 @@ def test_inspect_real_meshes(path, capsys):
 
 def test_segment_command(phantom, tmp_path, capsys):
     from bonecad.imaging import mesh_to_ct
-    from bonecad.io.volume import write_nifti
+    from bonecad.imaging.volume import write_nifti
 
     ct = write_nifti(mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=1.5, noise_hu=30.0), tmp_path / "ct.nii.gz")
     out = tmp_path / "tibia.stl"

@@ -8,11 +8,11 @@ import pytest
 import trimesh
 
 import bonecad
-from bonecad.cli import main
-from bonecad.curves.bspline import BSplineCurve, fit_curve
-from bonecad.curves.contours import contour_curves
-from bonecad.curves.occ import to_geom_curve
-from bonecad.io.cad import read_step
+from bonecad.run.cli import main
+from bonecad.splines.curve import BSplineCurve, fit_curve
+from bonecad.contours.curves import contour_curves
+from bonecad.occ.curves import to_geom_curve
+from bonecad.occ.exchange import read_step
 from bonecad.mesh.bone_mesh import BoneMesh
 
 from .conftest import real_mesh_params

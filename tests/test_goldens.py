@@ -7,10 +7,10 @@ from __future__ import annotations
 import pytest
 
 import bonecad
-from bonecad.analysis.goldens import GoldenMismatch, assert_histogram_matches
+from tests.goldens import GoldenMismatch, assert_histogram_matches
 from bonecad.analysis.model import region_labels
 from bonecad.analysis.deviation import shape_deviation
-from bonecad.curves.contours import contour_curves
+from bonecad.contours.curves import contour_curves
 
 from .conftest import TIBIA_DIR
 
@@ -29,7 +29,7 @@ def _reference(stem: str):
 
 
 def _nurbs_deviation(stem: str, perturb_mm: float = 0.0):
-    from bonecad.nurbs.model import build_nurbs
+    from bonecad.nurbs_model.model import build_nurbs
 
     bone, frame, contours = _reference(stem)
     shape = build_nurbs(contours).shape

@@ -10,7 +10,7 @@ from bonecad.imaging.compare import round_trip, surface_distance
 from bonecad.imaging.phantom import AIR_HU, CORTICAL_HU, MARROW_HU, SOFT_TISSUE_HU, mesh_to_ct
 from bonecad.imaging.segment import segment_bone
 from bonecad.imaging.voxelize import occupancy
-from bonecad.io.volume import CTVolume, read_volume, write_dicom_series, write_nifti
+from bonecad.imaging.volume import CTVolume, read_volume, write_dicom_series, write_nifti
 
 from .conftest import real_mesh_params
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonecad.curves.bspline import fit_curve
-from bonecad.curves.occ import to_edge
-from bonecad.io.cad import compound_of, frame_entities
-from bonecad.io.interop import to_cadquery
+from bonecad.splines.curve import fit_curve
+from bonecad.occ.curves import to_edge
+from bonecad.occ.exchange import compound_of, frame_entities
+from bonecad.occ.interop import to_cadquery
 
 cadquery = pytest.importorskip("cadquery", reason="cadquery is an optional extra")
 

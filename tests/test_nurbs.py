@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from bonecad.config import load_config
-from bonecad.curves.bspline import BSplineCurve
-from bonecad.curves.contours import contour_curves
+from bonecad.splines.curve import BSplineCurve
+from bonecad.contours.curves import contour_curves
 from bonecad.errors import InputError
-from bonecad.nurbs import FACE_NAMES, BSplineSurface, build_nurbs, write_nurbs
-from bonecad.io import brep
-from bonecad.nurbs import occ
-from bonecad.nurbs.surface import interpolate_clamped, interpolate_periodic, periodic_knots
+from bonecad.nurbs_model import FACE_NAMES, BSplineSurface, build_nurbs, write_nurbs
+from bonecad.occ import brep
+from bonecad.occ import surfaces as occ
+from bonecad.splines.surface import interpolate_clamped, interpolate_periodic, periodic_knots
 
 from .conftest import real_mesh_params
 
@@ -219,7 +219,7 @@ def test_real_mesh_gives_a_valid_closed_solid(path):
 
 
 def test_model_pickles_with_its_solid_and_face_names(ring_model):
-    """A model handed between processes (bonecad.parallel) keeps its exact solid and names."""
+    """A model handed between processes (bonecad.run.executor) keeps its exact solid and names."""
     import json
     import pickle
 

@@ -1,11 +1,11 @@
-"""Background jobs (bonecad.parallel): same results as in-process, errors come back, no orphan children."""
+"""Background jobs (bonecad.run.executor): same results as in-process, errors come back, no orphan children."""
 import os
 import time
 
 import numpy as np
 import pytest
 
-from bonecad import parallel
+from bonecad.run import executor as parallel
 from bonecad.errors import InputError
 
 

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from bonecad.cli import main
+from bonecad.run.cli import main
 
 CONTRACT = {"nurbs.step", "nurbs.iges", "curves.step", "curves.iges", "curves.json", "frame.json", "report.json",
             "report.html", "nurbs_deviation.png", "nurbs_histogram.png", "nurbs_zebra.png", "curves.png"}
@@ -68,7 +68,7 @@ def test_nurbs_step_is_one_closed_valid_solid(nurbs_run, phantom):
 
 def test_cad_files_carry_a_fixed_date(nurbs_run):
     """STEP and IGES headers hold a fixed date, not the time of the run (the same input gives the same file)."""
-    from bonecad.io.brep import FIXED_TIMESTAMP
+    from bonecad.occ.brep import FIXED_TIMESTAMP
 
     iges_date = FIXED_TIMESTAMP.replace("-", "").replace("T", ".").replace(":", "")
     for path in sorted(nurbs_run.glob("*.step")):
@@ -99,10 +99,10 @@ def test_an_error_in_the_frame_stage_exits_2_and_leaves_nothing(tmp_path, phanto
 
 
 def test_background_jobs_change_nothing_but_time(tmp_path, phantom):
-    """The second core's jobs (bonecad.parallel) give the same models and figures as one process:
+    """The second core's jobs (bonecad.run.executor) give the same models and figures as one process:
     every file byte for byte (STEP, IGES, JSON, PNG), the report but for its timings."""
     from bonecad.config import load_config
-    from bonecad.pipeline import reconstruct_bone
+    from bonecad.run.pipeline import reconstruct_bone
 
     reports = []
     for background in (True, False):

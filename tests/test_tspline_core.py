@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bonecad.errors import InputError
-from bonecad.tspline import TMesh, TSpline, check_suitability, from_dict, load, refine_elements, save, to_dict
+from bonecad.splines.tspline import TMesh, TSpline, check_suitability, from_dict, load, refine_elements, save, to_dict
 
 
 def tube(n_s: int = 12, n_t: int = 8, *, seed: int = 0, rational: bool = False, period: float = 2.0) -> TSpline:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonecad.tspline import TSpline
+from bonecad.splines.tspline import TSpline
 from bonecad.tspline_model.caps import build_cap
 
 RADIUS, LENGTH, N_S = 10.0, 60.0, 16

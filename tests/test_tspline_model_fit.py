@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from bonecad.tspline import TSpline, check_suitability
-from bonecad.tspline_model.fit import (
+from bonecad.splines.tspline import TSpline, check_suitability
+from bonecad.splines.tspline.fit import (
     FitTolerances,
     fit_adaptive,
     initial_parameters,
@@ -119,7 +119,7 @@ def test_budget_stops_refinement_and_says_so():
 
 
 def test_staircase_is_recognised_and_stops_refinement_at_its_noise():
-    from bonecad.tspline_model.fit import local_noise_mm, voxel_step_mm
+    from bonecad.splines.tspline.fit import local_noise_mm, voxel_step_mm
 
     rng = np.random.default_rng(4)
     pts, s, t = ellipsoid_band(20000, rng)
@@ -139,8 +139,8 @@ def test_staircase_is_recognised_and_stops_refinement_at_its_noise():
 
 
 def test_fairness_blocks_are_the_exact_thin_plate_energy():
-    from bonecad.tspline import refine_elements
-    from bonecad.tspline_model.fit import fairness_blocks
+    from bonecad.splines.tspline import refine_elements
+    from bonecad.splines.tspline.fit import fairness_blocks
 
     rng = np.random.default_rng(5)
     pts, s, t = bumpy_tube(3000, rng)
@@ -163,7 +163,7 @@ def test_fairness_blocks_are_the_exact_thin_plate_energy():
 
 
 def test_split_direction_follows_the_residual():
-    from bonecad.tspline_model.fit import _split_axes
+    from bonecad.splines.tspline.fit import _split_axes
 
     rng = np.random.default_rng(6)
     n = 4000
@@ -182,8 +182,8 @@ def test_split_direction_follows_the_residual():
 
 
 def test_neighbouring_marked_elements_share_one_split_direction():
-    from bonecad.tspline import refine_elements
-    from bonecad.tspline_model.fit import _marked_adjacency, _split_axes
+    from bonecad.splines.tspline import refine_elements
+    from bonecad.splines.tspline.fit import _marked_adjacency, _split_axes
 
     ts = cylinder(12, 6)
     ext = ts.extraction
@@ -213,7 +213,7 @@ def test_neighbouring_marked_elements_share_one_split_direction():
 
 
 def test_once_share_and_rms_hold_only_points_beyond_the_maximum_ask_for_refinement():
-    from bonecad.tspline_model.fit import _marked_elements
+    from bonecad.splines.tspline.fit import _marked_elements
 
     ts = cylinder(12, 6)
     rng = np.random.default_rng(2)

@@ -7,13 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from bonecad.tspline import check_suitability
+from bonecad.splines.tspline import check_suitability
 from bonecad.tspline_model import build_tspline_model, write_tspline
 
 
 @pytest.fixture(scope="module")
 def model(phantom, phantom_frame):
-    from bonecad.curves.contours import contour_curves
+    from bonecad.contours.curves import contour_curves
 
     contours = contour_curves(phantom, phantom_frame)
     return build_tspline_model(phantom, phantom_frame, contours, compare_tensor_product=False)
@@ -69,7 +69,7 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
     from OCP.TopAbs import TopAbs_SOLID
 
     from bonecad.analysis import TessellationSettings, shape_deviation
-    from bonecad.io.brep import is_valid
+    from bonecad.occ.brep import is_valid
 
     shape = model.shape
     assert shape.ShapeType() == TopAbs_SOLID and is_valid(shape)
@@ -90,8 +90,8 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
 
 
 def test_write_tspline_round_trips(model, tmp_path):
-    from bonecad.io.brep import is_valid, volume_mm3
-    from bonecad.io.cad import read_step
+    from bonecad.occ.brep import is_valid, volume_mm3
+    from bonecad.occ.exchange import read_step
 
     paths = write_tspline(model, tmp_path)
     assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json"}
@@ -119,13 +119,13 @@ def test_write_tspline_round_trips(model, tmp_path):
 
 
 def model_volume(model) -> float:
-    from bonecad.io.brep import volume_mm3
+    from bonecad.occ.brep import volume_mm3
 
     return volume_mm3(model.shape, 1e-4)
 
 
 def load_tube(path):
-    from bonecad.tspline import from_dict
+    from bonecad.splines.tspline import from_dict
 
     return from_dict(json.loads(path.read_text())["tube"])
 
@@ -137,7 +137,7 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
     from OCP.TopAbs import TopAbs_FACE
     from OCP.TopExp import TopExp_Explorer
 
-    from bonecad.tspline.occ import merged_surfaces, tensor_product_blocks
+    from bonecad.occ.tspline import merged_surfaces, tensor_product_blocks
     from bonecad.tspline_model.model import _occ_shape, to_scanner
 
     patches = [model.tspline, *(c.tspline for c in model.caps)]

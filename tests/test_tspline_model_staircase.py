@@ -36,7 +36,7 @@ def test_staircase_is_the_binary_mask_surface(truth, staircase):
     from bonecad.analysis.deviation import sample_surface
     from bonecad.analysis.statistics import share_within
     from bonecad.imaging.compare import distance_to_surface
-    from bonecad.tspline_model.fit import voxel_step_mm
+    from bonecad.splines.tspline.fit import voxel_step_mm
 
     assert voxel_step_mm(staircase.vertices) == pytest.approx(1.0)
     assert staircase.bodies[0].volume_mm3 == pytest.approx(truth.bodies[0].volume_mm3, rel=0.01)
@@ -49,7 +49,7 @@ def test_staircase_is_the_binary_mask_surface(truth, staircase):
 def test_fit_to_the_staircase_recovers_the_bone(truth, staircase):
     import bonecad
     from bonecad.analysis import TessellationSettings, shape_deviation
-    from bonecad.curves.contours import contour_curves
+    from bonecad.contours.curves import contour_curves
     from bonecad.tspline_model import build_tspline_model
 
     frame = bonecad.anatomical_frame(staircase)

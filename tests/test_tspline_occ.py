@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-occ = pytest.importorskip("bonecad.tspline.occ")
+occ = pytest.importorskip("bonecad.occ.tspline")
 
 from bonecad.errors import InputError  # noqa: E402
-from bonecad.io.brep import is_valid, sew  # noqa: E402
-from bonecad.tspline import TSpline  # noqa: E402
+from bonecad.occ.brep import is_valid, sew  # noqa: E402
+from bonecad.splines.tspline import TSpline  # noqa: E402
 from tests.test_tspline_core import size, t_tube, tube  # noqa: E402
 
 

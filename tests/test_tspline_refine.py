@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bonecad.errors import InputError
-from bonecad.tspline import KnotSegment, check_suitability, insert_segments, refine_elements, remove_segments
+from bonecad.splines.tspline import KnotSegment, check_suitability, insert_segments, refine_elements, remove_segments
 from tests.test_tspline_core import random_params, size, t_tube, tube
 
 
@@ -89,7 +89,7 @@ def test_segment_insertion_adds_the_vertices_suitability_needs():
 
 def insert_segments_unclosed(ts, segs):
     """The mesh with the segments inserted and nothing else (to show closure is needed)."""
-    from bonecad.tspline.refine import _Edges, _snap, _snap_s
+    from bonecad.splines.tspline.refine import _Edges, _snap, _snap_s
 
     mesh = ts.mesh
     for seg in segs:
@@ -228,7 +228,7 @@ def test_neighbours_split_across_each_other_need_two_extra_control_points():
 
 
 def test_crossing_a_point_on_a_perpendicular_edge_adds_one_side_only():
-    from bonecad.tspline.refine import _Edges
+    from bonecad.splines.tspline.refine import _Edges
 
     ts = tube(16, 12, seed=5)
     mesh, k, _ = ts.mesh.with_line("s", 0.5 * (ts.mesh.s_lines[6] + ts.mesh.s_lines[7]), 1e-12)

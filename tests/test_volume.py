@@ -9,7 +9,7 @@ import SimpleITK as sitk
 from pydicom.uid import generate_uid
 
 from bonecad.errors import InputError
-from bonecad.io.volume import RAS_TO_LPS, CTVolume, read_volume, write_dicom_series, write_nifti
+from bonecad.imaging.volume import RAS_TO_LPS, CTVolume, read_volume, write_dicom_series, write_nifti
 
 
 def _rotation(angles_deg) -> np.ndarray:

@@ -9,9 +9,9 @@ the NURBS baseline and the T-spline model share it:
 - :mod:`.report` report.json and report.html
 - :mod:`.goldens` regression of deviation histograms against stored goldens
 """
-from .deviation import DeviationResult, DirectionResult, sample_surface, shape_deviation, signed_distance_to_shape
-from .statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
-from .tessellation import Tessellation, TessellationSettings, tessellate
+from bonecad.analysis.deviation import DeviationResult, DirectionResult, sample_surface, shape_deviation, signed_distance_to_shape
+from bonecad.analysis.statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
+from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
 
 __all__ = [
     "DeviationResult",

@@ -7,9 +7,9 @@ sample to the mesh, so the two histograms read the same way.
 
 Method and error bound
 ----------------------
-1. The shape is tessellated finely (:func:`~bonecad.analysis.tessellation.tessellate`,
+1. The shape is tessellated finely (:func:`~bonecad.occ.tessellate.tessellate`,
    coverage checked against exact face areas) and each query point's nearest
-   triangle is found exactly (:class:`~bonecad.analysis.closest.TriangleLocator`,
+   triangle is found exactly (:class:`~bonecad.mesh.closest.TriangleLocator`,
    a bounding-box tree).
 2. On faces with a spline surface (all B-spline/Bezier faces, and analytic faces
    converted exactly), the point is projected onto the exact surface by
@@ -37,13 +37,13 @@ from typing import Callable, Union
 
 import numpy as np
 
-from ..config import load_config
-from ..errors import InputError
-from ..mesh.sampling import triangle_areas
-from .closest import TriangleLocator, vertex_normals
-from .nurbs_eval import project_faces
-from .statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram, share_within
-from .tessellation import Tessellation, TessellationSettings, tessellate
+from bonecad.config import load_config
+from bonecad.errors import InputError
+from bonecad.mesh.sampling import triangle_areas
+from bonecad.mesh.closest import TriangleLocator, vertex_normals
+from bonecad.splines.evaluate import project_faces
+from bonecad.analysis.statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram, share_within
+from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
 
 #: the anatomical regions a caller can label samples with
 REGIONS = ("distal", "shaft", "proximal")

@@ -7,20 +7,36 @@ caller's (staged) output folder.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from ..anatomy.frame import AnatomicalFrame
-from ..mesh.bone_mesh import BoneMesh
-from ..parallel import JobGroup
-from .continuity import knot_continuity, seam_continuity
-from .deviation import shape_deviation
-from .render import deviation_map_png, histogram_png, zebra_png
-from .report import ModelReport
-from .tessellation import tessellate
+from bonecad.anatomy.frame import AnatomicalFrame
+from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.run.executor import JobGroup
+from bonecad.occ.continuity import KnotContinuity, SeamContinuity, knot_continuity, seam_continuity
+from bonecad.analysis.deviation import DeviationResult, shape_deviation
+from bonecad.render.figures import deviation_map_png, histogram_png, zebra_png
+from bonecad.occ.tessellate import tessellate
 
 log = logging.getLogger("bonecad")
+
+
+@dataclass(frozen=True)
+class ModelReport:
+    """Everything the report says about one CAD model.
+
+    figures : name -> PNG path (copied by name into the report folder's references)
+    """
+
+    name: str
+    info: dict[str, Any] = field(default_factory=dict)
+    deviation: DeviationResult | None = None
+    continuity: SeamContinuity | None = None
+    knots: list[KnotContinuity] | None = None
+    figures: dict[str, Path] = field(default_factory=dict)
 
 
 def region_labels(frame: AnatomicalFrame):
@@ -53,7 +69,7 @@ def analyse_model(
 
     face_names : (name, TopoDS_Face) of the faces, as the model names them:
     the continuity is then also counted per pair of face names.
-    jobs : a group of background jobs (``bonecad.parallel``): the zebra figure
+    jobs : a group of background jobs (``bonecad.run.executor``): the zebra figure
     and the continuity are then made on the second core while the deviation is
     measured here, and the colour map while the histogram is drawn; None: all
     in this process.

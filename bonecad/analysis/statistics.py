@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import load_config
-from ..errors import InputError
+from bonecad.config import load_config
+from bonecad.errors import InputError
 
 #: percentiles of |deviation| reported by :class:`DeviationStats`
 PERCENTILES = (50.0, 90.0, 95.0, 99.0, 99.9)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import FitError
+from bonecad.errors import FitError
 
 
 @dataclass(frozen=True)

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import load_config
-from ..errors import FitError, InputError
-from ..mesh.bone_mesh import BoneMesh
-from ..mesh.sampling import triangle_areas
-from ..mesh.sections import plane_basis, section_mesh, section_stack
-from .ellipse import fit_ellipse
+from bonecad.config import load_config
+from bonecad.errors import FitError, InputError
+from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.mesh.sampling import triangle_areas
+from bonecad.mesh.sections import plane_basis, section_mesh, section_stack
+from bonecad.anatomy.ellipse import fit_ellipse
 
 # Cut ends: the share of an end's section area covered by faces within this
 # angle of the axis that makes the end a flat saw cut rather than a joint.

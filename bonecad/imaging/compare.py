@@ -37,7 +37,7 @@ def surface_distance(a, b, *, samples: int = 20000, seed: int = 0) -> SurfaceDis
 
 def distance_to_surface(mesh, points: np.ndarray) -> np.ndarray:
     """(n,) exact distance (mm) from each of (n, 3) ``points`` to trimesh ``mesh``."""
-    from ..analysis.closest import TriangleLocator
+    from bonecad.mesh.closest import TriangleLocator
 
     return TriangleLocator(mesh.vertices, mesh.faces).query(points).distance
 
@@ -51,7 +51,7 @@ def staircase_mesh(vertices: np.ndarray, faces: np.ndarray, voxel_mm: float) -> 
     """
     from skimage.measure import marching_cubes
 
-    from .voxelize import occupancy
+    from bonecad.imaging.voxelize import occupancy
 
     vertices = np.asarray(vertices, dtype=np.float64)
     origin = vertices.min(axis=0) - 2.0 * voxel_mm
@@ -84,8 +84,8 @@ def round_trip(mesh, *, voxel_mm: float = 0.5, noise_hu: float = 30.0, seed: int
     """Synthetic CT of trimesh ``mesh`` (``voxel_mm`` mm, ``noise_hu`` HU noise), segmented, compared with its tibia."""
     import time
 
-    from .phantom import mesh_to_ct
-    from .segment import segment_bone
+    from bonecad.imaging.phantom import mesh_to_ct
+    from bonecad.imaging.segment import segment_bone
 
     start = time.perf_counter()
     ct = mesh_to_ct(mesh.vertices, mesh.faces, voxel_mm=voxel_mm, noise_hu=noise_hu, seed=seed)

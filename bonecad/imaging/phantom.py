@@ -1,6 +1,6 @@
 """Synthetic CT of a bone mesh: cortical shell, marrow, soft tissue, air, blur, noise.
 
-The mesh's coordinates are taken as LPS world mm (see ``bonecad.io.volume``),
+The mesh's coordinates are taken as LPS world mm (see ``bonecad.imaging.volume``),
 so the volume's affine places every voxel where the mesh is.
 """
 from __future__ import annotations
@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from ..errors import InputError
-from ..io.volume import CTVolume
-from .voxelize import occupancy
+from bonecad.errors import InputError
+from bonecad.imaging.volume import CTVolume
+from bonecad.imaging.voxelize import occupancy
 
 # Typical CT values (HU): cortical bone 1200-1900, red/yellow marrow with
 # trabeculae 100-300, muscle and skin 30-60, air -1000.

@@ -12,8 +12,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..mesh.bone_mesh import BoneMesh
-from ..mesh.intake import prepare_bone
+from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.mesh.intake import prepare_bone
 
 
 @dataclass(frozen=True)

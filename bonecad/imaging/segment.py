@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..errors import InputError
-from ..io.volume import CTVolume
-from ..mesh.bone_mesh import BodyInfo, BoneMesh
+from bonecad.errors import InputError
+from bonecad.imaging.volume import CTVolume
+from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 
 log = logging.getLogger("bonecad")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from .sampling import triangle_areas
+from bonecad.mesh.sampling import triangle_areas
 
 
 @dataclass(frozen=True)

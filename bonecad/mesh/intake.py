@@ -13,9 +13,9 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import load_config
-from ..errors import InputError
-from .bone_mesh import BodyInfo, BoneMesh
+from bonecad.config import load_config
+from bonecad.errors import InputError
+from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 
 log = logging.getLogger("bonecad")
 

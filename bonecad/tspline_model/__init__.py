@@ -2,7 +2,7 @@
 curves, fitted to the polygonal model with local refinement, two apex caps,
 Bezier-extracted into a closed OpenCascade solid (DESIGN.md step 5)."""
 from bonecad.tspline_model.caps import ApexCap
-from bonecad.tspline_model.fit import FitResult, FitStats, FitTolerances, fit_adaptive, project_points
+from bonecad.splines.tspline.fit import FitResult, FitStats, FitTolerances, fit_adaptive, project_points
 from bonecad.tspline_model.model import TSplineModel, build_tspline_model, write_tspline
 
 __all__ = [

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.tspline import KnotSegment, TSpline, insert_segments
+from bonecad.splines.tspline import KnotSegment, TSpline, insert_segments
 
 
 @dataclass(frozen=True)

@@ -27,16 +27,16 @@ import numpy as np
 
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.config import load_config
-from bonecad.curves.contours import ContourSet, bone_coordinates
+from bonecad.contours.curves import ContourSet, bone_coordinates
 from bonecad.errors import KernelError
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.sampling import fit_samples
-from bonecad.parallel import JobGroup
-from bonecad.tspline import TSpline, to_dict
+from bonecad.run.executor import JobGroup
+from bonecad.splines.tspline import TSpline, to_dict
 
-from .caps import ApexCap, build_cap
-from .fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm, voxel_step_mm
-from .skinning import Parameterisation, initial_mesh, parameterisation, skin
+from bonecad.tspline_model.caps import ApexCap, build_cap
+from bonecad.splines.tspline.fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm, voxel_step_mm
+from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger("bonecad")
 
@@ -204,7 +204,7 @@ def build_tspline_model(
     config : a full configuration (``load_config()``); its [tspline] section is used.
     compare_tensor_product : fit the tensor-product comparison surface too
         (default: the ``compare_tensor_product`` setting); it about doubles the time.
-    jobs : background jobs (``bonecad.parallel``): the mesh's local noise is then
+    jobs : background jobs (``bonecad.run.executor``): the mesh's local noise is then
         measured on the second core while the first parameters are found.
     Raises FitError when a stage cannot produce a usable surface, KernelError
     when OpenCascade cannot make a valid closed solid of it.
@@ -292,7 +292,7 @@ def build_tspline_model(
 
 def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
     """The same T-spline mapped to scanner coordinates (an affine map of the control points: exact)."""
-    return TSpline(ts.mesh, frame.to_scanner(ts.control_points), ts.weights)
+    return ts.with_control_points(frame.to_scanner(ts.control_points), ts.weights)
 
 
 def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: AnatomicalFrame, *,
@@ -305,8 +305,8 @@ def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisati
     ("distal", "shaft", "proximal") that holds the middle of their t-range, cap
     faces "distal_apex_cap" / "proximal_apex_cap". Returns (solid, [(name, face)]).
     """
-    from bonecad.io.brep import is_valid, named_solid
-    from bonecad.tspline.occ import bezier_faces, merged_faces
+    from bonecad.occ.brep import is_valid, named_solid
+    from bonecad.occ.tspline import bezier_faces, merged_faces
 
     def faces_of(ts: TSpline) -> tuple[list, np.ndarray]:
         """Faces of a patch and the t in the middle of each (parameters of ``ts``)."""
@@ -341,7 +341,7 @@ def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisati
 def write_tspline(model: TSplineModel, out_dir: str | Path) -> dict[str, Path]:
     """Write tspline.step, tspline.iges (the solid named "tspline", faces by region) and
     tspline.json (scanner coordinates, mm) into ``out_dir``."""
-    from bonecad.io.brep import write_named_iges, write_named_step
+    from bonecad.occ.brep import write_named_iges, write_named_step
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

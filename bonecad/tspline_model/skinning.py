@@ -26,11 +26,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.curves.contours import ContourSet
+from bonecad.contours.curves import ContourSet
 from bonecad.errors import FitError
-from bonecad.tspline import TMesh, TSpline
+from bonecad.splines.tspline import TMesh, TSpline
 
-from .fit import solve_control_points
+from bonecad.splines.tspline.fit import solve_control_points
 
 #: Samples per curve when a curve becomes skinning data.
 _OPEN_SAMPLES = 60

@@ -1,1 +1,0 @@
-"""Readers and writers: meshes, CT volumes, STEP/IGES, staged output folders."""

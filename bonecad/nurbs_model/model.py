@@ -1,0 +1,223 @@
+"""The NURBS baseline model (DESIGN.md step 4): build it from the contour curves, export it.
+
+::
+
+    contours = contour_curves(bone, frame)
+    model = build_nurbs(contours, apex_fill="patch")
+    model.solid            # build123d Solid, scanner mm
+    write_nurbs(model, out_dir)   # nurbs.step, nurbs.iges, faces named by region
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from bonecad.config import load_config
+from bonecad.contours.curves import ContourSet
+from bonecad.errors import InputError, KernelError
+from bonecad.occ import brep
+from bonecad.occ import surfaces as occ
+from bonecad.nurbs_model.loft import BoneSurfaces, RefitReport, bone_surfaces, ring_cap
+from bonecad.splines.surface import BSplineSurface
+
+ApexFill = Literal["ring", "patch"]
+APEX_FILLS: tuple[str, ...] = ("ring", "patch")
+#: face names, from the distal apex up
+FACE_NAMES = ("distal_apex_cap", "distal", "shaft", "proximal", "proximal_apex_cap")
+
+
+@dataclass(frozen=True)
+class NurbsModel:
+    """The sewn NURBS baseline in scanner coordinates (mm).
+
+    surfaces : one numpy surface per face, named by region (``surface.region``); u
+        runs round the bone, v from the distal towards the proximal apex, and
+        S_u x S_v points outwards (or inwards where ``surface.reversed``: the
+        fill-hole patch, whose parametrisation OpenCascade chooses)
+    shape : the OCP TopoDS_Solid
+    face_names : (region name, TopoDS_Face) of every face of ``shape``
+    volume_mm3 : the solid's volume (its area is the analysis' CAD -> mesh area)
+    refits : deviation of the compatible (common-knot) curves per region
+    boundary_gap_mm : largest distance between the shaft's end iso-curves and the
+        end surfaces' boundary iso-curves (distal, proximal); 0 by construction
+    boundary_shift_mm : how far those iso-curves lie from the shaft's own first and
+        last contour sections, which they replace
+    patch_errors : for apex_fill "patch", per cap the G0 (mm) and G1 (rad) errors
+        OpenCascade reports for the plate surface
+    """
+
+    surfaces: tuple[BSplineSurface, ...]
+    shape: object
+    face_names: tuple[tuple[str, object], ...]
+    apex_fill: str
+    volume_mm3: float
+    refits: tuple[RefitReport, ...]
+    boundary_gap_mm: tuple[float, float]
+    boundary_shift_mm: tuple[float, float]
+    patch_errors: dict = field(default_factory=dict)
+    timings_s: dict = field(default_factory=dict)
+
+    @property
+    def faces(self) -> int:
+        return len(self.face_names)
+
+    @property
+    def control_points(self) -> int:
+        """Total poles of all faces (a cone's collapsed apex row counts once per pole, as in the file)."""
+        return sum(s.control_points for s in self.surfaces)
+
+    @property
+    def solid(self):
+        """The model as a build123d Solid."""
+        from build123d import Solid
+
+        return Solid(self.shape)
+
+    def __getstate__(self) -> dict:
+        """Picklable (to hand the model between processes): the solid as OpenCascade's binary B-rep."""
+        state = dict(self.__dict__)
+        state["shape"], state["face_names"] = brep.pickle_named_shape(self.shape, self.face_names)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        state = dict(state)
+        state["shape"], state["face_names"] = brep.unpickle_named_shape(state["shape"], state["face_names"])
+        for key, value in state.items():
+            object.__setattr__(self, key, value)
+
+    def surface(self, region: str) -> BSplineSurface:
+        for s in self.surfaces:
+            if s.region == region:
+                return s
+        raise InputError(f"no face named {region!r}; faces are {[s.region for s in self.surfaces]}")
+
+    def summary(self) -> dict:
+        """Figures for report.json: faces, control points, volume, refit accuracy, seams, timings."""
+        return {
+            "faces": self.faces,
+            "control_points": self.control_points,
+            "apex_fill": self.apex_fill,
+            "volume_mm3": round(self.volume_mm3, 3),
+            "surfaces": [s.to_dict() | {"control_points": s.control_points} for s in self.surfaces],
+            "compatible_curves": [r.to_dict() for r in self.refits],
+            "boundary_gap_mm": [float(g) for g in self.boundary_gap_mm],
+            "boundary_shift_mm": [round(float(g), 5) for g in self.boundary_shift_mm],
+            "patch_errors": self.patch_errors,
+            "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
+        }
+
+
+def _boundary_gap(a: BSplineSurface, va: float, b: BSplineSurface, vb: float, samples: int = 560) -> float:
+    u = np.linspace(0.0, 1.0, samples, endpoint=False)
+    return float(np.linalg.norm(a(u, np.full_like(u, va)) - b(u, np.full_like(u, vb)), axis=1).max())
+
+
+def build_nurbs(contours: ContourSet, *, apex_fill: ApexFill | None = None, config: dict | None = None) -> NurbsModel:
+    """Loft, connect, cap and sew the contour curves into a closed NURBS solid (scanner mm).
+
+    Parameters
+    ----------
+    contours : the three regions' curves (bone coordinates) with their frame
+    apex_fill : "ring" (ruled cone from the apex to the ring of curve ends, the
+        paper's ring of 28 lines) or "patch" (fill-hole plate surface, G1 to the
+        end surface); default ``[nurbs] apex_fill``
+    config : settings (default :func:`bonecad.load_config`)
+
+    Raises
+    ------
+    InputError for an unknown ``apex_fill``; FitError when a region cannot be
+    skinned; KernelError when OpenCascade fails or the result is not one valid
+    closed solid of positive volume.
+    """
+    settings = (config or load_config())["nurbs"]
+    apex_fill = apex_fill or settings["apex_fill"]
+    if apex_fill not in APEX_FILLS:
+        raise InputError(f"apex_fill must be one of {APEX_FILLS}, got {apex_fill!r}")
+    tolerance = float(settings["sewing_tolerance_mm"])
+    timings: dict[str, float] = {}
+
+    start = time.perf_counter()
+    bone = bone_surfaces(contours)
+    gaps = (_boundary_gap(bone.distal, 1.0, bone.shaft, 0.0), _boundary_gap(bone.shaft, 1.0, bone.proximal, 0.0))
+    timings["surfaces"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    frame = contours.frame
+    surfaces = _caps_and_sides(bone, apex_fill)
+    scanner = [s.transformed(frame.axes, frame.origin) for s in surfaces]
+    named = [(s.region, occ.make_face(s)) for s in scanner]
+    patch_errors = {}
+    if apex_fill == "patch":
+        by_name = dict(named)
+        for cap, side, ring in (("distal_apex_cap", "distal", bone.distal_ring),
+                                ("proximal_apex_cap", "proximal", bone.proximal_ring)):
+            edge = occ.ring_edge(by_name[side], ring.transformed(frame.axes, frame.origin))
+            face, g0, g1 = occ.fill_patch(edge, by_name[side], tolerance_mm=tolerance)
+            patch_errors[cap] = {"g0_mm": g0, "g1_rad": g1}
+            named.append((cap, face))
+    named.sort(key=lambda item: FACE_NAMES.index(item[0]))
+    timings["faces"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    solid, face_names = brep.named_solid(named, tolerance_mm=tolerance)
+    reversed_ = {name: brep.face_is_reversed(f) for name, f in face_names}
+    final = []
+    for s in scanner:
+        if reversed_[s.region]:
+            raise KernelError(f"the {s.region} face came out inward; the loft orientation is wrong")
+        final.append(s)
+    for name in ("distal_apex_cap", "proximal_apex_cap"):
+        if apex_fill == "patch":
+            geom = occ.BRep_Tool.Surface_s(dict(face_names)[name])
+            final.append(occ.from_geom_surface(geom, name, reversed_=reversed_[name]))
+    final.sort(key=lambda s: FACE_NAMES.index(s.region))
+    timings["sew"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    if not brep.is_valid(solid):
+        raise KernelError("the sewn NURBS solid is not valid (BRepCheck_Analyzer)")
+    free = brep.free_edge_count(solid)
+    if free:
+        raise KernelError(f"the sewn NURBS solid has {free} free edges")
+    volume = brep.volume_mm3(solid)
+    if not volume > 0:
+        raise KernelError(f"the NURBS solid has volume {volume:.1f} mm^3: it is inside out")
+    timings["check"] = time.perf_counter() - start
+    return NurbsModel(
+        surfaces=tuple(final),
+        shape=solid,
+        face_names=tuple(sorted(face_names, key=lambda item: FACE_NAMES.index(item[0]))),
+        apex_fill=apex_fill,
+        volume_mm3=volume,
+        refits=bone.refits,
+        boundary_gap_mm=gaps,
+        boundary_shift_mm=bone.boundary_shift_mm,
+        patch_errors=patch_errors,
+        timings_s=timings,
+    )
+
+
+def _caps_and_sides(bone: BoneSurfaces, apex_fill: str) -> list[BSplineSurface]:
+    """The side faces, plus the ring caps when ``apex_fill`` is "ring" (bone coordinates)."""
+    sides = [bone.distal, bone.shaft, bone.proximal]
+    if apex_fill != "ring":
+        return sides
+    return [
+        ring_cap(bone.distal_ring, bone.distal_apex, "distal_apex_cap", apex_first=True),
+        *sides,
+        ring_cap(bone.proximal_ring, bone.proximal_apex, "proximal_apex_cap", apex_first=False),
+    ]
+
+
+def write_nurbs(model: NurbsModel, out_dir: str | Path) -> dict[str, Path]:
+    """``nurbs.step`` and ``nurbs.iges`` in ``out_dir`` (mm), the solid named "nurbs", faces by region."""
+    out_dir = Path(out_dir)
+    names = list(model.face_names)
+    return {
+        "step": brep.write_named_step(model.shape, out_dir / "nurbs.step", "nurbs", names),
+        "iges": brep.write_named_iges(model.shape, out_dir / "nurbs.iges", "nurbs", names),
+    }

@@ -1,0 +1,1 @@
+"""Figures (matplotlib, headless): deviation maps, histograms, zebra, the contour-curve plan."""

@@ -1,0 +1,211 @@
+"""The ``bonecad`` command: one entry point, one subcommand per pipeline stage.
+
+Results go to files, progress and logs to stderr. Exit status: 0 success,
+2 bad input (one clear message naming the file), 1 internal failure.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from bonecad._version import __version__
+from bonecad.errors import BonecadError, InputError
+
+log = logging.getLogger("bonecad")
+
+EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def _versions() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    import numpy
+
+    try:
+        ocp, b3d = version("cadquery-ocp-novtk"), version("build123d")
+    except PackageNotFoundError:  # pragma: no cover - metadata missing in odd installs
+        ocp = b3d = "unknown"
+    return f"bonecad {__version__} (numpy {numpy.__version__}, OCP {ocp}, build123d {b3d})"
+
+
+class _Version(argparse.Action):
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(_versions())
+        parser.exit()
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, help="TOML file overriding defaults (angles, counts, tolerances)")
+    p.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
+                   help="units of the input mesh (default: auto, which accepts mm and names the unit otherwise)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log every step (debug)")
+    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+
+
+def _add_stage(p: argparse.ArgumentParser) -> None:
+    """Arguments of the commands that run the pipeline: input, output folder, boundaries, common options."""
+    p.add_argument("input", type=Path, help="mesh file (STL, OBJ, PLY, OFF) or CT volume (DICOM folder, .nii, "
+                   ".nii.gz, .nrrd, .mha)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    _add_boundaries(p)
+    _add_common(p)
+
+
+def _add_boundaries(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--distal-boundary", type=float, metavar="MM",
+                   help="height of the distal/shaft boundary above the plafond centre (default: from the anatomy)")
+    p.add_argument("--proximal-boundary", type=float, metavar="MM",
+                   help="height of the shaft/proximal boundary above the plafond centre (default: from the anatomy)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="bonecad",
+        description="Turn a CT scan or mesh of a tibia into native CAD models (NURBS and T-spline).",
+    )
+    parser.add_argument("--version", action=_Version, nargs=0, help="print versions (bonecad, OCP, build123d)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("inspect", help="summarise a bone mesh: units, bodies, tibia, side, defects repaired",
+                       description="Read and clean a mesh; print its units, bodies (volume, length), which body "
+                       "is the tibia, the side (left/right, from the anatomy), watertightness and repairs.")
+    p.add_argument("mesh", type=Path, help="STL, OBJ, PLY or OFF file")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    _add_common(p)
+
+    p = sub.add_parser("frame", help="anatomical frame: axes, planes, plateau ellipse -> frame.json, curves.step",
+                       description="Find the mechanical axis, the L-M and A-P planes, the plateau ellipse, the "
+                       "local proximal axis and the region boundaries; write frame.json and curves.step "
+                       "(points, lines, planes as native CAD entities) into --out.")
+    _add_stage(p)
+
+    p = sub.add_parser("curves", help="contour curves as B-spline edges -> curves.step/.iges/.json/.png",
+                       description="Section the tibia (distal and proximal half-planes, shaft planes), rebuild "
+                       "every section as a cubic B-spline within its tolerance, and write curves.step and "
+                       "curves.iges (curves and reference entities), curves.json (poles, knots, achieved "
+                       "deviation, repairs), curves.png and frame.json into --out.")
+    _add_stage(p)
+
+    p = sub.add_parser("reconstruct", help="mesh or CT -> NURBS and T-spline CAD models, analysis, report",
+                       description="The whole pipeline: frame, contour curves, the NURBS baseline and/or the "
+                       "T-spline model, their deviation/continuity/zebra analysis. Writes nurbs.step/.iges, "
+                       "tspline.step/.iges/.json, curves.step/.iges/.json, frame.json, report.json, report.html "
+                       "and PNG figures into --out.")
+    _add_stage(p)
+    p.add_argument("--model", choices=["nurbs", "tspline", "both"], default="both", help="which models to build")
+    p.add_argument("--apex-fill", choices=["ring", "patch"], default=None,
+                   help="NURBS apex holes: a ring of lines lofted flat, or a fill-hole patch (default from config)")
+    p.add_argument("--compare-tensor-product", action="store_true", default=None,
+                   help="also fit a tensor-product B-spline to the T-spline's tolerance and report its control points")
+
+    p = sub.add_parser("segment", help="CT volume -> tibia surface mesh",
+                       description="Read a CT volume (DICOM folder, .nii/.nii.gz, .nrrd, .mha), segment the "
+                       "tibia (cortical bone threshold, marrow filled, fibula/femur/talus separated) and write its "
+                       "surface (marching cubes, Taubin smoothing) in world mm (DICOM LPS).")
+    p.add_argument("ct", type=Path, help="DICOM folder or volume file")
+    p.add_argument("--out", type=Path, required=True, help="mesh file to write (.stl, .ply, .obj, .off)")
+    _add_common(p)
+
+    p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
+                       description="Generate the synthetic phantom tibia and run every stage available on it; "
+                       "write phantom.stl and the stage outputs into --out.")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    _add_common(p)
+    return parser
+
+
+def _setup_logging(args: argparse.Namespace) -> None:
+    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("bonecad: %(message)s"))
+    log.handlers[:] = [handler]
+    log.setLevel(level)
+    log.propagate = False
+
+
+def _print_inspect(summary: dict) -> None:
+    print(f"file        {summary['file']}")
+    print(f"units       {summary['units']} (detected)")
+    print(f"triangles   {summary['triangles']} (tibia, after cleanup)")
+    print(f"watertight  {'yes' if summary['watertight'] else 'no'}")
+    print(f"side        {summary['side']} (from the anatomy: medial malleolus, tuberosity)")
+    print(f"axis length {summary['mechanical_axis_length_mm']} mm (plateau centre to plafond centre)")
+    print(f"plateau     ellipse semi-axes {summary['plateau_semi_axes_mm'][0]} x {summary['plateau_semi_axes_mm'][1]} mm")
+    print("bodies")
+    for b in summary["bodies"]:
+        kept = "kept" if b["role"] == "tibia" else "dropped"
+        print(f"  {b['role']:<12} {b['triangles']:>8} triangles  {b['volume_mm3'] / 1000:>8.1f} cm3  "
+              f"{b['length_mm']:>6.1f} mm long  ({kept})")
+    print("repairs" if summary["repairs"] else "repairs     none")
+    for r in summary["repairs"]:
+        print(f"  {r}")
+
+
+def _print_result(result) -> None:
+    if result.contours is not None:
+        for name, summary in result.contours.summary().items():
+            print(f"{name:<9} {summary['curves']:>3} curves x {summary['control_points_per_curve']} control points, "
+                  f"worst {summary['worst_max_deviation_mm']:.3f} mm (tolerance {summary['tolerance_mm']} mm, "
+                  f"{summary['within_tolerance']}/{summary['curves']} within)")
+    for name, report in result.reports.items():
+        stats = report.deviation.mesh_to_cad.stats
+        print(f"{name:<9} {report.info.get('faces')} faces, {report.info.get('control_points')} control points, "
+              f"deviation RMS {stats.rms_mm:.3f} mm, worst {max(stats.max_outside_mm, stats.max_inside_mm):.3f} mm")
+
+
+def _run(args: argparse.Namespace) -> None:
+    from bonecad.run import pipeline
+    from bonecad.config import load_config
+
+    config = load_config(args.config)
+    if args.command == "inspect":
+        summary = pipeline.inspect(args.mesh, units=args.units, config=config)
+        if args.json:
+            print(json.dumps(summary, indent=2))
+        else:
+            _print_inspect(summary)
+    elif args.command in ("frame", "curves", "reconstruct"):
+        until = {"frame": "frame", "curves": "curves", "reconstruct": "models"}[args.command]
+        models = ("nurbs", "tspline") if getattr(args, "model", "both") == "both" else (args.model,)
+        result = pipeline.reconstruct(args.input, args.out, until=until, models=models,
+                                      apex_fill=getattr(args, "apex_fill", None),
+                                      compare_tensor_product=getattr(args, "compare_tensor_product", None),
+                                      units=args.units, config=config,
+                                      distal_boundary_mm=args.distal_boundary,
+                                      proximal_boundary_mm=args.proximal_boundary)
+        _print_result(result)
+        print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
+    elif args.command == "segment":
+        bone = pipeline.run_segment(args.ct, args.out)
+        print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
+    elif args.command == "demo":
+        result = pipeline.run_demo(args.out, config=config)
+        _print_result(result)
+        print(f"demo outputs written to {args.out} ({result.wall_s:.1f} s)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args)
+    try:
+        _run(args)
+    except InputError as exc:
+        print(f"bonecad: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except BonecadError as exc:
+        print(f"bonecad: internal error: {exc}", file=sys.stderr)
+        return EXIT_INTERNAL
+    except Exception as exc:  # an unexpected failure is still one clear line, not a traceback
+        log.debug("traceback", exc_info=True)
+        print(f"bonecad: internal error: {type(exc).__name__}: {exc} (run with --verbose for the traceback)",
+              file=sys.stderr)
+        return EXIT_INTERNAL
+    return EXIT_OK
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

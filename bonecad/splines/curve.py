@@ -1,0 +1,270 @@
+"""Cubic B-spline curves in numpy: evaluation, least-squares fitting, point projection.
+
+Open curves are clamped (end points interpolated); closed curves are periodic
+with uniform knots (C2 everywhere, no seam: DESIGN.md warns that OpenCascade's
+periodic interpolation leaves a double knot). Fitting follows Piegl & Tiller,
+The NURBS Book, ch. 9.4 (least squares with parameter correction); knots of
+open curves are placed by the averaging rule (eq. 9.68-9.69).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from scipy import sparse
+from scipy.interpolate import BSpline
+
+from bonecad.errors import FitError
+
+
+@dataclass(frozen=True)
+class BSplineCurve:
+    """A degree-p B-spline curve in 3-D (mm), parameter domain [0, 1].
+
+    control_points : (n, 3) float64
+    knots : (n + p + 1,) for open curves (clamped); for periodic curves the
+        n + 1 distinct knots of one period, uniform on [0, 1]
+    """
+
+    control_points: np.ndarray
+    knots: np.ndarray
+    degree: int = 3
+    periodic: bool = False
+
+    @cached_property
+    def _spline(self) -> BSpline:
+        if not self.periodic:
+            return BSpline(self.knots, self.control_points, self.degree)
+        t, c = _periodic_extension(self.control_points, self.degree)
+        return BSpline(t, c, self.degree, extrapolate="periodic")
+
+    def __call__(self, u: np.ndarray, nu: int = 0) -> np.ndarray:
+        """(m, 3) points (or derivatives of order ``nu``) at parameters ``u`` in [0, 1]."""
+        u = np.asarray(u, dtype=np.float64)
+        if self.periodic:
+            u = np.mod(u, 1.0)
+        return self._spline(u, nu=nu)
+
+    @property
+    def count(self) -> int:
+        return int(len(self.control_points))
+
+    def transformed(self, matrix: np.ndarray, offset: np.ndarray) -> "BSplineCurve":
+        """The same curve under the affine map x -> x @ matrix + offset (exact for B-splines)."""
+        return BSplineCurve(self.control_points @ matrix + offset, self.knots, self.degree, self.periodic)
+
+
+def _periodic_extension(control_points: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unclamped knots and wrapped coefficients representing the periodic curve on [0, 1]."""
+    n = len(control_points)
+    t = (np.arange(-degree, n + degree + 1, dtype=np.float64)) / n
+    c = np.vstack([control_points, control_points[:degree]])
+    return t, c
+
+
+def centripetal_parameters(points: np.ndarray, closed: bool) -> np.ndarray:
+    """Parameters in [0, 1] (open: both ends; closed: [0, 1)) spaced by sqrt of chord length."""
+    diffs = np.diff(points, axis=0)
+    if closed:
+        diffs = np.vstack([diffs, points[:1] - points[-1:]])
+    steps = np.sqrt(np.linalg.norm(diffs, axis=1))
+    if steps.sum() <= 0:
+        raise FitError("curve points are all coincident")
+    cum = np.concatenate([[0.0], np.cumsum(steps)])
+    cum /= cum[-1]
+    return cum[:-1] if closed else cum
+
+
+def averaged_knots(u: np.ndarray, count: int, degree: int) -> np.ndarray:
+    """Clamped knot vector for a least-squares fit of ``count`` control points (NURBS Book eq. 9.68-9.69)."""
+    m = len(u) - 1
+    n = count - 1
+    d = (m + 1) / (n - degree + 1)
+    j = np.arange(1, n - degree + 1)
+    i = np.floor(j * d).astype(int)
+    alpha = j * d - i
+    interior = (1.0 - alpha) * u[i - 1] + alpha * u[i]
+    return np.concatenate([np.zeros(degree + 1), interior, np.ones(degree + 1)])
+
+
+def _design_matrix(u: np.ndarray, knots: np.ndarray, degree: int, periodic: bool, count: int) -> sparse.csr_matrix:
+    if not periodic:
+        return BSpline.design_matrix(u, knots, degree).tocsr()
+    t, _ = _periodic_extension(np.zeros((count, 3)), degree)
+    full = BSpline.design_matrix(np.mod(u, 1.0), t, degree).tocoo()
+    return sparse.csr_matrix((full.data, (full.row, full.col % count)), shape=(len(u), count))
+
+
+def _fairness(count: int, periodic: bool) -> sparse.csr_matrix:
+    """D^T D for the second differences of the control polygon (wrapping round when periodic)."""
+    if periodic:
+        eye = sparse.identity(count, format="csr")
+        diff = eye - 2 * sparse.csr_matrix(np.roll(np.eye(count), 1, axis=1)) + sparse.csr_matrix(np.roll(np.eye(count), 2, axis=1))
+    else:
+        diff = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(count - 2, count))
+    return (diff.T @ diff).tocsr()
+
+
+def _solve(a: sparse.csr_matrix, points: np.ndarray, weights: np.ndarray, fairness: sparse.csr_matrix) -> np.ndarray:
+    """Weighted least squares with fairness: (A^T W A + F) P = A^T W X. Dense: a curve has at most a
+    few hundred control points, where scipy.sparse's set-up costs more than the whole dense solve."""
+    dense = a.toarray()
+    aw = dense * weights[:, None]
+    return np.linalg.solve(aw.T @ dense + fairness.toarray(), aw.T @ points)
+
+
+def _solve_tangent_distance(
+    a: sparse.csr_matrix,
+    points: np.ndarray,
+    tangents: np.ndarray,
+    weights: np.ndarray,
+    fairness: sparse.csr_matrix,
+    tangential: float = 0.1,
+) -> np.ndarray:
+    """One tangent-distance step (Wang, Pottmann & Liu 2006, "Fitting B-spline curves to point clouds by
+    curvature-based squared distance minimization", ACM TOG 25(2)): errors are measured across the
+    curve at each foot point, plus ``tangential`` times along it, so the fit converges in a few
+    steps where plain parameter correction crawls. Dense 3n x 3n system (see ``_solve``)."""
+    coo = a.tocoo()
+    m, n = a.shape
+    order = np.lexsort((coo.col, coo.row))
+    per_row = coo.nnz // m
+    if per_row * m != coo.nnz:
+        raise FitError("design matrix rows do not all have degree + 1 entries")
+    cols = coo.col[order].reshape(m, per_row)
+    vals = coo.data[order].reshape(m, per_row)
+    outer = np.einsum("ir,ic->irc", tangents, tangents)
+    metric = (np.eye(3)[None] - (1.0 - tangential**2) * outer) * weights[:, None, None]
+    # Block (j, k) of the normal matrix gathers N_j N_k M_i over the points i.
+    data = np.einsum("ij,ik,irc->ijkrc", vals, vals, metric)
+    rows = 3 * cols[:, :, None, None, None] + np.arange(3)[None, None, None, :, None]
+    columns = 3 * cols[:, None, :, None, None] + np.arange(3)[None, None, None, None, :]
+    shape = (m, per_row, per_row, 3, 3)
+    flat = (np.broadcast_to(rows, shape) * (3 * n) + np.broadcast_to(columns, shape)).ravel()
+    system = np.bincount(flat, data.ravel(), minlength=(3 * n) ** 2).reshape(3 * n, 3 * n)
+    system += np.kron(fairness.toarray(), np.eye(3))
+    mx = np.einsum("irc,ic->ir", metric, points)
+    rhs = np.zeros((n, 3))
+    np.add.at(rhs, cols.ravel(), (vals[:, :, None] * mx[:, None, :]).reshape(-1, 3))
+    return np.linalg.solve(system, rhs.ravel()).reshape(n, 3)
+
+
+def project_parameters(curve: BSplineCurve, points: np.ndarray, u: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """Newton steps moving each ``u`` to the foot of the perpendicular from its point (vectorised)."""
+    u = u.copy()
+    for _ in range(iterations):
+        c0, c1, c2 = curve(u), curve(u, 1), curve(u, 2)
+        diff = c0 - points
+        num = np.einsum("ij,ij->i", diff, c1)
+        den = np.einsum("ij,ij->i", c1, c1) + np.einsum("ij,ij->i", diff, c2)
+        step = np.where(np.abs(den) > 1e-12, num / np.where(den == 0, 1.0, den), 0.0)
+        u = u - step
+        u = np.mod(u, 1.0) if curve.periodic else np.clip(u, 0.0, 1.0)
+    return u
+
+
+def densified(points: np.ndarray, minimum: int, closed: bool) -> np.ndarray:
+    """The same polyline with every segment split evenly until it has at least ``minimum`` points.
+
+    A coarse mesh gives few section points; the polyline between them is
+    still the raw curve, and a least-squares fit needs samples in every span.
+    """
+    if len(points) < 2:
+        raise FitError(f"a section of {len(points)} point(s) is not a curve")
+    if len(points) >= minimum:
+        return points
+    pieces = int(np.ceil(minimum / len(points)))
+    ends = np.vstack([points[1:], points[:1]]) if closed else points[1:]
+    starts = points[: len(ends)]
+    t = np.arange(pieces) / pieces
+    inner = (starts[:, None, :] + t[None, :, None] * (ends - starts)[:, None, :]).reshape(-1, 3)
+    return inner if closed else np.vstack([inner, points[-1:]])
+
+
+@dataclass(frozen=True)
+class CurveFit:
+    """A fitted curve with its accuracy against the points it was fitted to (mm)."""
+
+    curve: BSplineCurve
+    max_deviation_mm: float
+    rms_deviation_mm: float
+    parameters: np.ndarray
+    outliers: int
+
+
+def fit_curve(
+    points: np.ndarray,
+    count: int,
+    *,
+    periodic: bool,
+    degree: int = 3,
+    corrections: int = 4,
+    outlier_mm: float = 1.0,
+    fairness: float = 1e-4,
+) -> CurveFit:
+    """Least-squares B-spline with ``count`` control points through ``points`` (m, 3).
+
+    Open curves interpolate their end points. Points farther than
+    ``outlier_mm`` and 6 robust standard deviations from a first fit (peaks
+    from holes and artefacts) are dropped and the curve refitted, bridging
+    them smoothly; the number dropped is reported. A light second-difference
+    fairness term (``fairness`` times the mean number of points per control
+    point) keeps spans without data (bridged gaps) well posed.
+    """
+    points = densified(np.asarray(points, dtype=np.float64), 4 * count, closed=periodic)
+    # Open curves interpolate both end points; closed ones their start point
+    # (u = 0), which lines the sections up with curve 0 of the end regions.
+    pinned = [0] if periodic else [0, -1]
+    reset = (0.0,) if periodic else (0.0, 1.0)
+    dropped = 0
+    for round_ in range(3):
+        curve, u, fair, knots = _point_distance_fit(points, count, degree, periodic, corrections, fairness, pinned, reset)
+        residual = np.linalg.norm(curve(u) - points, axis=1)
+        med = np.median(residual)
+        mad = 1.4826 * np.median(np.abs(residual - med))
+        outlier = residual > max(outlier_mm, med + 6.0 * mad)
+        outlier[pinned] = False
+        if round_ == 2 or not outlier.any():
+            break
+        # Drop the peaks and fit the rest afresh: new parameters bridge the gap smoothly.
+        points = points[~outlier]
+        dropped += int(outlier.sum())
+    weights = np.ones(len(points))
+    weights[pinned] = 1e6
+    # Then tangent-distance steps, kept only if they help.
+    best = (float(residual.max()), curve, u)
+    for _ in range(3):
+        tangents = curve(u, 1)
+        tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
+        a = _design_matrix(u, knots, degree, periodic, count)
+        curve = BSplineCurve(_solve_tangent_distance(a, points, tangents, weights, fair), knots, degree, periodic)
+        u = project_parameters(curve, points, u)
+        u[pinned] = reset
+        worst = float(np.linalg.norm(curve(u) - points, axis=1).max())
+        if worst < best[0]:
+            best = (worst, curve, u)
+    worst, curve, u = best
+    residual = np.linalg.norm(curve(u) - points, axis=1)
+    return CurveFit(
+        curve=curve,
+        max_deviation_mm=float(residual.max()),
+        rms_deviation_mm=float(np.sqrt(np.mean(residual**2))),
+        parameters=u,
+        outliers=dropped,
+    )
+
+
+def _point_distance_fit(points, count, degree, periodic, corrections, fairness, pinned, reset):
+    """Least squares on point distances with parameter correction (NURBS Book 9.4.1, then projection)."""
+    u = centripetal_parameters(points, closed=periodic)
+    knots = np.linspace(0.0, 1.0, count + 1) if periodic else averaged_knots(u, count, degree)
+    weights = np.ones(len(points))
+    weights[pinned] = 1e8
+    fair = fairness * (len(points) / count) * _fairness(count, periodic)
+    for _ in range(corrections + 1):
+        a = _design_matrix(u, knots, degree, periodic, count)
+        curve = BSplineCurve(_solve(a, points, weights, fair), knots, degree, periodic)
+        u = project_parameters(curve, points, u)
+        u[pinned] = reset
+    return curve, u, fair, knots
