@@ -30,6 +30,11 @@ from bonecad.occ.continuity import seam_continuity
 from bonecad.analysis.deviation import sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.occ.tessellate import TessellationSettings, tessellate
 from bonecad.config import load_config
+from bonecad.analysis.statistics import settings_band_edges
+from bonecad.settings import Settings
+
+#: the shipped [analysis] histogram bands (mm)
+BANDS_MM = settings_band_edges(Settings.load().analysis)
 
 RADIUS = 40.0
 
@@ -65,7 +70,7 @@ def main() -> None:
           f"(bound for unrefined: {tess.chord_error_mm.max():.4f} mm)")
 
     t0 = time.perf_counter()
-    result = shape_deviation(mesh_v, coarse.triangles, shape, sample_points=count, tessellation=tess)
+    result = shape_deviation(mesh_v, coarse.triangles, shape, edges_mm=BANDS_MM, sample_points=count, tessellation=tess)
     print(f"shape_deviation both ways, {count} points each: {time.perf_counter() - t0:.2f} s "
           f"{ {k: round(v, 2) for k, v in result.timings_s.items()} }")
     s = result.mesh_to_cad.stats

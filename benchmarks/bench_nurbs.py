@@ -62,7 +62,7 @@ def main() -> None:
         vol = mesh_volume(bone.vertices, bone.faces)
         for fill in ("ring", "patch"):
             model = build_nurbs(contours, apex_fill=fill)
-            result = shape_deviation(bone.vertices, bone.faces, model.shape, sample_points=args.samples,
+            result = shape_deviation(bone.vertices, bone.faces, model.shape, edges_mm=BANDS_MM, sample_points=args.samples,
                                      settings=settings)
             fwd, fwd_max = bands(result.mesh_to_cad)
             back, back_max = bands(result.cad_to_mesh)

@@ -36,6 +36,11 @@ from bonecad.contours.curves import contour_curves
 from bonecad.imaging.compare import distance_to_surface, staircase_mesh
 from bonecad.mesh.intake import prepare_bone
 from bonecad.tspline_model import build_tspline_model
+from bonecad.analysis.statistics import settings_band_edges
+from bonecad.settings import Settings
+
+#: the shipped [analysis] histogram bands (mm)
+BANDS_MM = settings_band_edges(Settings.load().analysis)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 SMOOTH_MESHES = ("LHDL_CT_tibia_no_fib_r.stl", "TLEM2_CT_tibia_r.stl")  # CT, smooth to 0.25 mm (quadric test)
@@ -43,7 +48,7 @@ WITHIN_MM = 0.25
 
 
 def deviation_line(model_shape, vertices, faces) -> str:
-    dev = shape_deviation(vertices, faces, model_shape, sample_points=100_000,
+    dev = shape_deviation(vertices, faces, model_shape, edges_mm=BANDS_MM, sample_points=100_000,
                           settings=TessellationSettings(coverage_tolerance=0.01))
     m2c, c2m = dev.mesh_to_cad, dev.cad_to_mesh
     return (f"mesh->CAD within {WITHIN_MM} mm {m2c.share_within(WITHIN_MM):.4f}, max {np.abs(m2c.deviation_mm).max():.3f}, "

@@ -22,6 +22,11 @@ from bonecad.analysis import TessellationSettings, shape_deviation
 from bonecad.contours.curves import contour_curves
 from bonecad.errors import KernelError
 from bonecad.tspline_model import build_tspline_model
+from bonecad.analysis.statistics import settings_band_edges
+from bonecad.settings import Settings
+
+#: the shipped [analysis] histogram bands (mm)
+BANDS_MM = settings_band_edges(Settings.load().analysis)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 
@@ -40,7 +45,7 @@ def main(paths: list[Path]) -> None:
         tp_time = compared.timings_s.get("tensor_product", float("nan"))
         t_all = time.perf_counter() - t1
         try:
-            dev = shape_deviation(bone.vertices, bone.faces, model.shape, sample_points=100_000,
+            dev = shape_deviation(bone.vertices, bone.faces, model.shape, edges_mm=BANDS_MM, sample_points=100_000,
                                   settings=TessellationSettings(coverage_tolerance=0.01))
         except KernelError as exc:  # the analysis refuses faces its tessellation covers badly
             dev, dev_error = None, str(exc)

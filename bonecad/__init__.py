@@ -1,22 +1,28 @@
 """bonecad: CT scans and meshes of long bones to native CAD models.
 
-The Python API mirrors the pipeline, one function per stage::
+The Python API mirrors the pipeline, one function per stage; settings default
+to the shipped ones (``Settings.load()``, from ``data/defaults.toml``)::
 
     bone = bonecad.load_bone("tibia.stl")          # BoneMesh (mm)
     frame = bonecad.anatomical_frame(bone)         # AnatomicalFrame
+    result = bonecad.reconstruct("tibia.stl", "out")
 """
 from __future__ import annotations
 
-import importlib
+import logging
+from pathlib import Path
 
 from bonecad._version import __version__
-
-from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
-from bonecad.config import load_config
+from bonecad.anatomy import frame as _frame
+from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.errors import BonecadError, FitError, InputError, KernelError
+from bonecad.mesh import intake as _intake
 from bonecad.mesh.bone_mesh import BoneMesh
-from bonecad.mesh.intake import load_bone, prepare_bone
+from bonecad.mesh.intake import Units
 from bonecad.run.pipeline import Reconstruction, reconstruct
+from bonecad.settings import Settings
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 __all__ = [
     "AnatomicalFrame",
@@ -25,21 +31,40 @@ __all__ = [
     "FitError",
     "InputError",
     "KernelError",
+    "Reconstruction",
+    "Settings",
     "TibiaParameters",
+    "__version__",
     "anatomical_frame",
     "load_bone",
-    "load_config",
     "phantom_tibia",
-    "prepare_bone",
-    "Reconstruction",
     "reconstruct",
 ]
 
-#: imported on first use: the CT stack (scipy.ndimage) is not needed for a mesh
-_LAZY = {"TibiaParameters": ".imaging.phantom_tibia", "phantom_tibia": ".imaging.phantom_tibia"}
+
+def load_bone(path: str | Path, *, units: Units = "auto", settings: Settings | None = None) -> BoneMesh:
+    """Read, clean and check a tibia mesh; keep the tibia body (see ``bonecad.mesh.intake.load_bone``)."""
+    s = settings if settings is not None else Settings.load()
+    return _intake.load_bone(path, units=units, settings=s.mesh, plausible=s.units)
+
+
+def anatomical_frame(bone: BoneMesh, settings: Settings | None = None) -> AnatomicalFrame:
+    """The tibia's anatomical frame (see ``bonecad.anatomy.frame.anatomical_frame``)."""
+    s = settings if settings is not None else Settings.load()
+    return _frame.anatomical_frame(bone, settings=s.anatomy, plausible=s.units)
+
+
+def phantom_tibia(params: TibiaParameters | None = None, settings: Settings | None = None) -> BoneMesh:
+    """The synthetic phantom tibia (see ``bonecad.imaging.phantom_tibia``)."""
+    from bonecad.imaging import phantom_tibia as _phantom
+
+    s = settings if settings is not None else Settings.load()
+    return _phantom.phantom_tibia(params or _phantom.TibiaParameters(), settings=s.mesh, plausible=s.units)
 
 
 def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+    if name == "TibiaParameters":  # the CT stack (scipy.ndimage) is not imported for a mesh
+        from bonecad.imaging.phantom_tibia import TibiaParameters
+
+        return TibiaParameters
     raise AttributeError(f"module 'bonecad' has no attribute {name!r}")

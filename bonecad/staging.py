@@ -2,10 +2,14 @@
 
 A command writes every file into a hidden staging folder beside ``DIR``; only
 when the whole command succeeds are the files moved into ``DIR``. On any
-failure the staging folder is removed, so no partial output is ever left.
+failure (and on SIGINT/SIGTERM, which the CLI turns into exceptions) the
+staging folder is removed, so no partial output is ever left. A process
+killed outright (SIGKILL) cannot clean up: its staging folder carries its
+process id, and the next run into the same ``DIR`` removes it.
 """
 from __future__ import annotations
 
+import glob
 import os
 import shutil
 import tempfile
@@ -20,13 +24,33 @@ def _umask() -> int:
     return mask
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _remove_orphans(parent: Path, name: str) -> None:
+    """Remove staging folders of ``name`` left by processes that no longer run (killed outright)."""
+    prefix = f".{name}.staging-"
+    for folder in parent.glob(f"{glob.escape(prefix)}*"):
+        pid = folder.name[len(prefix):].split("-", 1)[0]
+        if folder.is_dir() and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
 @contextmanager
 def staged_output(out_dir: str | Path) -> Iterator[Path]:
     """Yield a staging folder; on success move its files into ``out_dir`` (created if needed)."""
     out_dir = Path(out_dir)
     parent = out_dir.resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=parent))
+    _remove_orphans(parent, out_dir.name)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-{os.getpid()}-", dir=parent))
     try:
         yield staging
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -4,10 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonecad.occ.continuity import ContinuityTolerances, knot_continuity, seam_continuity
+from bonecad.occ.continuity import knot_continuity, seam_continuity
 from bonecad.render.figures import VIEWS, render_tessellation_normals, screen_axes, zebra_image, zebra_png
 from bonecad.occ.tessellate import tessellate
 from bonecad.errors import InputError
+from tests.defaults import TESSELLATION, CONTINUITY
+from dataclasses import replace
 
 
 def _bspline(poles, ku, mu, kv, mv, p=3, q=3):
@@ -58,7 +60,7 @@ def two_patches(interior_multiplicity: int):
 def test_box_fails_g1_on_every_edge_at_90_degrees():
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
 
-    result = seam_continuity(BRepPrimAPI_MakeBox(10.0, 20.0, 30.0).Shape())
+    result = seam_continuity(BRepPrimAPI_MakeBox(10.0, 20.0, 30.0).Shape(), tolerances=CONTINUITY)
     assert len(result.classes) == 12
     assert set(result.classes) == {"C0"}
     np.testing.assert_allclose(result.angle_deg, 90.0, atol=1e-9)
@@ -69,7 +71,7 @@ def test_box_fails_g1_on_every_edge_at_90_degrees():
 
 def test_c1_join_passes_g1_and_fails_g2():
     shape, whole = two_patches(2)
-    result = seam_continuity(shape)
+    result = seam_continuity(shape, tolerances=CONTINUITY)
     assert list(result.classes) == ["G1"]
     assert result.angle_deg.max() < 1e-4
     assert result.curvature_jump.max() > 0.2
@@ -81,7 +83,7 @@ def test_c1_join_passes_g1_and_fails_g2():
 
 def test_c2_join_passes_g2():
     shape, whole = two_patches(1)
-    result = seam_continuity(shape)
+    result = seam_continuity(shape, tolerances=CONTINUITY)
     assert list(result.classes) == ["G2"]
     assert result.curvature_jump.max() < 1e-8
     assert knot_continuity(whole)[0].min_continuity.tolist() == [2, 99]
@@ -89,11 +91,11 @@ def test_c2_join_passes_g2():
 
 def test_c0_join_fails_g1_and_thresholds_move_the_class():
     shape, _ = two_patches(3)
-    result = seam_continuity(shape)
+    result = seam_continuity(shape, tolerances=CONTINUITY)
     assert list(result.classes) == ["C0"]
     angle = result.angle_deg.max()
     assert angle > 1.0
-    loose = seam_continuity(shape, tolerances=ContinuityTolerances(angle_deg=angle + 1, curvature_jump=10.0))
+    loose = seam_continuity(shape, tolerances=replace(CONTINUITY, angle_deg=angle + 1, curvature_jump=10.0))
     assert list(loose.classes) == ["G2"]
 
 
@@ -102,7 +104,7 @@ def test_periodic_seam_is_not_a_shared_edge_and_knots_report_it():
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeCylinder
 
     cyl = BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeCylinder(5.0, 20.0).Shape(), True).Shape()
-    result = seam_continuity(cyl)
+    result = seam_continuity(cyl, tolerances=CONTINUITY)
     assert len(result.classes) == 2 and set(result.classes) == {"C0"}  # the two rims
     kinds = {k.kind for k in knot_continuity(cyl)}
     assert kinds == {"bspline"}
@@ -111,7 +113,7 @@ def test_periodic_seam_is_not_a_shared_edge_and_knots_report_it():
 def _zebra_rows(shape):
     """Zebra image of the posterior view, and the image column of the seam x = 20 mm."""
     frame = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]).T  # looking down -z onto the patches
-    tess = tessellate(shape)
+    tess = tessellate(shape, TESSELLATION)
     raster = render_tessellation_normals(tess, frame, ("posterior",), height_px=240)[0]
     img = zebra_image(raster, stripes=30)[..., 0] > 0.5
     left, right = raster.extent_mm[:2]
@@ -141,7 +143,7 @@ def test_zebra_stripes_break_at_a_tangent_break_only():
 
 def test_zebra_png_two_views(tmp_path):
     shape, _ = two_patches(2)
-    path = zebra_png(tmp_path / "zebra.png", tessellate(shape), np.eye(3), height_px=200)
+    path = zebra_png(tmp_path / "zebra.png", tessellate(shape, TESSELLATION), np.eye(3), height_px=200)
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     assert VIEWS == ("anterior", "posterior")

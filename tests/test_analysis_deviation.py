@@ -7,9 +7,11 @@ import pytest
 from bonecad.mesh.closest import TriangleLocator
 from bonecad.analysis.deviation import sample_shape, sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.analysis.statistics import band_edges, deviation_stats, histogram, weighted_percentiles
-from bonecad.occ.tessellate import TessellationSettings, tessellate
-from bonecad.config import load_config
+from bonecad.occ.tessellate import tessellate
 from bonecad.errors import InputError, KernelError
+from tests.defaults import TESSELLATION, BANDS_MM
+from dataclasses import replace
+
 
 RADIUS = 10.0
 
@@ -30,7 +32,7 @@ def sphere():
 
 @pytest.fixture(scope="module")
 def sphere_fine(sphere):
-    return tessellate(sphere, TessellationSettings(deflection_mm=0.005))
+    return tessellate(sphere, replace(TESSELLATION, deflection_mm=0.005))
 
 
 def test_faces_are_native_bspline(sphere):
@@ -57,11 +59,11 @@ def test_coverage_check_refuses_a_short_tessellation(sphere):
     # a chordal tessellation is always short of the exact area; demanding a
     # surplus makes the check fire, as a partial cover would
     with pytest.raises(KernelError, match="tessellation covers"):
-        tessellate(sphere, TessellationSettings(deflection_mm=0.05, coverage_tolerance=-1e-3, small_face_factor=0.0))
+        tessellate(sphere, replace(TESSELLATION, deflection_mm=0.05, coverage_tolerance=-1e-3, small_face_factor=0.0))
 
 
 def test_small_curved_faces_get_their_chordal_allowance():
-    settings = TessellationSettings(deflection_mm=0.05, coverage_tolerance=0.005, small_face_factor=2.0)
+    settings = replace(TESSELLATION, deflection_mm=0.05, coverage_tolerance=0.005, small_face_factor=2.0)
     allowed = settings.allowed_shortfall(np.array([1.0, 0.25, 10000.0]))
     assert allowed[0] == pytest.approx(0.1) and allowed[1] == pytest.approx(0.2)
     assert allowed[2] == pytest.approx(0.005)  # large faces: the plain tolerance, partial covers refused
@@ -82,9 +84,9 @@ def test_exact_projection_matches_analytic_sphere(sphere_fine):
 
 def test_sphere_against_its_own_tessellation_is_at_the_tessellation_bound(sphere):
     """Done-when of issue 4: a B-spline sphere vs its own tessellation."""
-    coarse = tessellate(sphere, TessellationSettings(deflection_mm=0.05))
+    coarse = tessellate(sphere, replace(TESSELLATION, deflection_mm=0.05))
     bound = coarse.chord_error_mm.max()
-    result = shape_deviation(coarse.vertices, coarse.triangles, sphere, sample_points=20000)
+    result = shape_deviation(coarse.vertices, coarse.triangles, sphere, edges_mm=BANDS_MM, sample_points=20000)
     fwd = result.mesh_to_cad
     exact = np.linalg.norm(fwd.points, axis=1) - RADIUS
     np.testing.assert_allclose(fwd.deviation_mm, exact, atol=1e-8)
@@ -107,7 +109,7 @@ def test_vertex_deviation_for_the_colour_map_is_within_the_chord_error(sphere, s
 
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    result = shape_deviation(vertices, faces, sphere, sample_points=2000, tessellation=sphere_fine)
+    result = shape_deviation(vertices, faces, sphere, edges_mm=BANDS_MM, sample_points=2000, tessellation=sphere_fine)
     exact = np.linalg.norm(vertices, axis=1) - RADIUS
     assert np.abs(exact).max() < 1e-9
     error = np.abs(result.vertex_deviation_mm - exact)
@@ -117,7 +119,7 @@ def test_vertex_deviation_for_the_colour_map_is_within_the_chord_error(sphere, s
 
 def test_shape_samples_lie_on_the_exact_surface_with_area_weights(sphere):
     """Caps of a sphere (area 2 pi R h): their weighted share of samples drawn on a coarse tessellation."""
-    coarse = tessellate(sphere, TessellationSettings(deflection_mm=0.05))
+    coarse = tessellate(sphere, replace(TESSELLATION, deflection_mm=0.05))
     count = 100000
     points, weights, on_surface = sample_shape(coarse, count, seed=2)
     assert on_surface.all()
@@ -132,7 +134,7 @@ def test_shape_samples_lie_on_the_exact_surface_with_area_weights(sphere):
 def test_sign_is_positive_for_a_mesh_outside_the_model(sphere, sphere_fine):
     scale = 1.01  # mesh 0.1 mm outside the sphere everywhere
     result = shape_deviation(
-        sphere_fine.vertices * scale, sphere_fine.triangles, sphere, sample_points=5000, tessellation=sphere_fine
+        sphere_fine.vertices * scale, sphere_fine.triangles, sphere, edges_mm=BANDS_MM, sample_points=5000, tessellation=sphere_fine
     )
     fwd, back = result.mesh_to_cad, result.cad_to_mesh
     assert fwd.stats.mean_mm == pytest.approx(0.1, abs=0.01)
@@ -152,9 +154,9 @@ def test_cylinder_with_planar_caps():
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeCylinder
 
     cyl = _nurbs(BRepPrimAPI_MakeCylinder(5.0, 20.0).Shape())
-    fine = tessellate(cyl, TessellationSettings(deflection_mm=0.01))
-    coarse = tessellate(cyl, TessellationSettings(deflection_mm=0.1))
-    result = shape_deviation(coarse.vertices, coarse.triangles, cyl, sample_points=20000, tessellation=fine)
+    fine = tessellate(cyl, replace(TESSELLATION, deflection_mm=0.01))
+    coarse = tessellate(cyl, replace(TESSELLATION, deflection_mm=0.1))
+    result = shape_deviation(coarse.vertices, coarse.triangles, cyl, edges_mm=BANDS_MM, sample_points=20000, tessellation=fine)
     fwd = result.mesh_to_cad
     p = fwd.points
     on_side = (p[:, 2] > 1e-6) & (p[:, 2] < 20 - 1e-6)
@@ -168,7 +170,7 @@ def test_chord_error_near_points_is_the_largest_of_the_triangles_within_reach():
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeCylinder
 
     cyl = _nurbs(BRepPrimAPI_MakeCylinder(5.0, 20.0).Shape())
-    settings = TessellationSettings(deflection_mm=0.1)
+    settings = replace(TESSELLATION, deflection_mm=0.1)
     every = tessellate(cyl, settings).chord_error_mm
     side = int(np.argmax(every))  # the curved face; the planar caps have no chord error
     assert every[side] > 0 and np.sort(every)[-2] < 1e-9
@@ -184,7 +186,7 @@ def test_regions_partition_the_histogram(sphere, sphere_fine):
         return np.where(points[:, 2] < -5, "distal", np.where(points[:, 2] > 5, "proximal", "shaft"))
 
     result = shape_deviation(
-        sphere_fine.vertices * 1.02, sphere_fine.triangles, sphere, sample_points=6000,
+        sphere_fine.vertices * 1.02, sphere_fine.triangles, sphere, edges_mm=BANDS_MM, sample_points=6000,
         regions=regions, tessellation=sphere_fine,
     )
     fwd = result.mesh_to_cad
@@ -200,7 +202,7 @@ def test_regions_partition_the_histogram(sphere, sphere_fine):
 def test_bad_region_labels_are_refused(sphere, sphere_fine):
     with pytest.raises(InputError, match="unknown region labels"):
         shape_deviation(
-            sphere_fine.vertices, sphere_fine.triangles, sphere, sample_points=100,
+            sphere_fine.vertices, sphere_fine.triangles, sphere, edges_mm=BANDS_MM, sample_points=100,
             regions=lambda p: np.full(len(p), "femur"), tessellation=sphere_fine,
         )
 
@@ -243,9 +245,9 @@ def test_sampling_is_deterministic_and_area_weighted():
 def test_statistics_and_histogram():
     d = np.array([-3.0, -0.05, 0.05, 0.15, 2.0, 5.0])
     w = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 5.0])
-    h = histogram(d, w)
-    cfg = load_config()["analysis"]
-    assert len(h.edges_mm) == round(2 * cfg["band_limit_mm"] / cfg["band_width_mm"]) + 1
+    h = histogram(d, w, BANDS_MM)
+    cfg = SETTINGS.analysis
+    assert len(h.edges_mm) == round(2 * cfg.band_limit_mm / cfg.band_width_mm) + 1
     assert h.shares.sum() == pytest.approx(1.0)
     assert h.shares[0] == pytest.approx(0.1)  # -3 underflows
     assert h.shares[-1] == pytest.approx(0.6)  # 2.0 (upper edge) and 5.0 overflow
@@ -266,7 +268,7 @@ def test_foot_points_across_a_face_boundary_are_refined_on_the_neighbour():
     from tests.test_analysis_continuity import two_patches
 
     split, whole = two_patches(1)
-    settings = TessellationSettings(deflection_mm=0.5, max_edge_mm=8.0)
+    settings = replace(TESSELLATION, deflection_mm=0.5, max_edge_mm=8.0)
     one = tessellate(whole, settings)
     two = tessellate(split, settings)
     rng = np.random.default_rng(4)

@@ -13,10 +13,15 @@ from bonecad.occ.continuity import knot_continuity, seam_continuity
 from bonecad.analysis.deviation import shape_deviation
 from tests.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, compare_histogram
 from bonecad.render.figures import deviation_map_png, histogram_png
-from bonecad.export.report import SCHEMA, ModelReport, write_report
+from bonecad.analysis.model import ModelReport
+from bonecad.export import export
+from bonecad.export.report import SCHEMA, ReportDocument
 from bonecad.analysis.statistics import Histogram
-from bonecad.occ.tessellate import TessellationSettings, brepmesh_face, face_spline_surface, tessellate
+from bonecad.occ.tessellate import brepmesh_face, face_spline_surface, tessellate
 from bonecad.errors import InputError
+from tests.defaults import TESSELLATION, CONTINUITY, BANDS_MM
+from dataclasses import replace
+
 
 RADIUS = 10.0
 GOLDEN = "sphere_r10_wavy"
@@ -28,7 +33,7 @@ def sphere():
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
     shape = BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(RADIUS).Shape(), True).Shape()
-    return shape, tessellate(shape)
+    return shape, tessellate(shape, TESSELLATION)
 
 
 def wavy_mesh(tess, amplitude_mm: float, offset_mm: float = 0.0):
@@ -37,7 +42,7 @@ def wavy_mesh(tess, amplitude_mm: float, offset_mm: float = 0.0):
     # (fixed here, so the golden does not move with the analysis' own tessellator)
     face = tess.faces[0]
     surface, native = face_spline_surface(face)
-    settings = TessellationSettings(deflection_mm=0.05, angular_deflection_rad=0.2, coverage_tolerance=0.005,
+    settings = replace(TESSELLATION, deflection_mm=0.05, angular_deflection_rad=0.2, coverage_tolerance=0.005,
                                     area_rel_eps=1e-6, max_edge_mm=1.0)
     v, _, triangles, _ = brepmesh_face(face, 0, surface, native, False, settings)
     unit = v / np.linalg.norm(v, axis=1, keepdims=True)
@@ -52,7 +57,7 @@ def _regions(points):
 def _deviation(sphere, offset_mm=0.0):
     shape, tess = sphere
     v, f = wavy_mesh(tess, 0.3, offset_mm)
-    return v, f, shape_deviation(v, f, shape, sample_points=20000, regions=_regions, tessellation=tess)
+    return v, f, shape_deviation(v, f, shape, edges_mm=BANDS_MM, sample_points=20000, regions=_regions, tessellation=tess)
 
 
 def test_golden_histogram_passes_on_the_model_and_catches_a_perturbed_one(sphere):
@@ -95,15 +100,14 @@ def test_report_json_and_html(sphere, tmp_path):
     hist = histogram_png(tmp_path / "histogram_nurbs.png",
                          {"overall": dev.mesh_to_cad.histogram, **dev.mesh_to_cad.region_histograms})
     models = [
-        ModelReport("nurbs", {"faces": 1, "control_points": 45}, dev, seam_continuity(shape),
+        ModelReport("nurbs", {"faces": 1, "control_points": 45}, dev, seam_continuity(shape, tolerances=CONTINUITY),
                     knot_continuity(shape), {"deviation map": cmap, "histogram": hist}),
         ModelReport("tspline", {"faces": 1, "control_points": 30, "cap_control_points": 4}, dev,
-                    seam_continuity(shape), None, {}),
+                    seam_continuity(shape, tolerances=CONTINUITY), None, {}),
     ]
-    json_path, html_path = write_report(
-        tmp_path, input_summary={"file": "sphere", "triangles": len(f)}, frame={"axes": frame},
-        models=models, timings_s=dict(dev.timings_s),
-    )
+    files = export("report", ReportDocument(input_summary={"file": "sphere", "triangles": len(f)}, frame={"axes": frame},
+                                            models=tuple(models), timings_s=dict(dev.timings_s)), tmp_path)
+    json_path, html_path = files["json"], files["html"]
     report = json.loads(json_path.read_text())
     assert report["schema"] == SCHEMA
     stats = report["models"]["nurbs"]["deviation"]["mesh_to_cad"]["stats"]
@@ -122,8 +126,12 @@ def test_report_json_and_html(sphere, tmp_path):
 
 
 def test_report_without_both_models_has_no_comparison(tmp_path):
-    json_path, html_path = write_report(tmp_path, input_summary={}, frame={}, models=[ModelReport("nurbs")], timings_s={})
+    files = export("report", ReportDocument(input_summary={}, frame={}, models=(ModelReport("nurbs"),), timings_s={}),
+                   tmp_path)
+    json_path, html_path = files["json"], files["html"]
     assert json.loads(json_path.read_text())["comparison"] is None
     assert "NURBS versus T-spline" not in html_path.read_text()
-    with pytest.raises(InputError, match="missing"):
-        write_report(tmp_path, input_summary={}, frame={}, models=[ModelReport("nurbs", figures={"x": tmp_path / "no.png"})], timings_s={})
+    with pytest.raises(FileNotFoundError, match="missing"):
+        export("report", ReportDocument(input_summary={}, frame={},
+                                        models=(ModelReport("nurbs", figures={"x": tmp_path / "no.png"}),), timings_s={}),
+               tmp_path)

@@ -16,6 +16,8 @@ from bonecad.occ.exchange import read_step
 from bonecad.mesh.bone_mesh import BoneMesh
 
 from .conftest import real_mesh_params
+from tests.defaults import SETTINGS
+from bonecad.mesh.intake import prepare_bone
 
 
 def _occ_points(geom, u):
@@ -76,7 +78,7 @@ def test_spikes_are_bridged_and_reported():
 
 @pytest.fixture(scope="module")
 def phantom_contours(phantom, phantom_frame):
-    return contour_curves(phantom, phantom_frame)
+    return contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
 
 
 def test_phantom_curves_shape(phantom_contours, phantom_frame):
@@ -128,9 +130,9 @@ def test_holes_and_noise(phantom, phantom_frame, phantom_contours, rng):
     vertices = mesh.vertices + rng.normal(scale=0.05, size=mesh.vertices.shape)
     spiky = rng.choice(len(vertices), 40, replace=False)
     vertices[spiky] += mesh.vertex_normals[spiky] * 3.0
-    holed = bonecad.prepare_bone(vertices, mesh.faces[keep], source="holed phantom")
+    holed = prepare_bone(vertices, mesh.faces[keep], source="holed phantom", settings=SETTINGS.mesh, plausible=SETTINGS.units)
     assert any("closed holes" in r for r in holed.repairs)
-    contours = contour_curves(holed, bonecad.anatomical_frame(holed))
+    contours = contour_curves(holed, bonecad.anatomical_frame(holed), settings=SETTINGS.curves)
     assert len(contours.distal) == 28 and len(contours.proximal) == 28
     assert sum(len(c.repairs) > 0 for c in contours.all_curves()) > 0
     clean = {c.name: c for c in phantom_contours.distal + phantom_contours.proximal}
@@ -144,7 +146,7 @@ def test_holes_and_noise(phantom, phantom_frame, phantom_contours, rng):
 def test_left_tibia_curves_mirror_right(phantom, phantom_contours):
     flip = np.array([-1.0, 1.0, 1.0])
     left = BoneMesh(vertices=phantom.vertices * flip, faces=phantom.faces[:, ::-1], source="mirrored")
-    contours = contour_curves(left, bonecad.anatomical_frame(left))
+    contours = contour_curves(left, bonecad.anatomical_frame(left), settings=SETTINGS.curves)
     for a, b in zip(contours.distal, phantom_contours.distal):
         assert np.abs(a.curve(np.linspace(0, 1, 50)) - b.curve(np.linspace(0, 1, 50))).max() < 0.3
 
@@ -182,7 +184,7 @@ def name_level(by_name):
 @pytest.mark.parametrize("path", real_mesh_params())
 def test_real_meshes_every_curve(path):
     bone = bonecad.load_bone(path)
-    contours = contour_curves(bone, bonecad.anatomical_frame(bone))
+    contours = contour_curves(bone, bonecad.anatomical_frame(bone), settings=SETTINGS.curves)
     summary = contours.summary()
     assert summary["distal"]["curves"] == 28 and summary["proximal"]["curves"] == 28
     assert summary["shaft"]["curves"] >= 4

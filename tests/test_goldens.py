@@ -13,6 +13,8 @@ from bonecad.analysis.deviation import shape_deviation
 from bonecad.contours.curves import contour_curves
 
 from .conftest import TIBIA_DIR
+from tests.defaults import SETTINGS, BANDS_MM
+
 
 REFERENCES = ["LHDL_CT_tibia_no_fib_r", "TLEM2_CT_tibia_r"]
 SAMPLES = 100_000
@@ -25,17 +27,17 @@ def _reference(stem: str):
         pytest.skip(f"reference mesh {path} is absent")
     bone = bonecad.load_bone(path)
     frame = bonecad.anatomical_frame(bone)
-    return bone, frame, contour_curves(bone, frame)
+    return bone, frame, contour_curves(bone, frame, settings=SETTINGS.curves)
 
 
 def _nurbs_deviation(stem: str, perturb_mm: float = 0.0):
     from bonecad.nurbs_model.model import build_nurbs
 
     bone, frame, contours = _reference(stem)
-    shape = build_nurbs(contours).shape
+    shape = build_nurbs(contours, settings=SETTINGS.nurbs).shape
     if perturb_mm:
         shape = _moved(shape, perturb_mm)
-    return shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=SAMPLES)
+    return shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame), edges_mm=BANDS_MM, sample_points=SAMPLES)
 
 
 def _moved(shape, distance_mm: float):
@@ -61,8 +63,8 @@ def test_tspline_histogram_matches_golden():
 
     stem = REFERENCES[0]
     bone, frame, contours = _reference(stem)
-    shape = build_tspline_model(bone, frame, contours, compare_tensor_product=False).shape
-    deviation = shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=SAMPLES)
+    shape = build_tspline_model(bone, frame, contours, settings=SETTINGS.tspline, apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm).shape
+    deviation = shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame), edges_mm=BANDS_MM, sample_points=SAMPLES)
     assert_histogram_matches(deviation.mesh_to_cad.histogram, f"tspline_{stem}", tolerance=TOLERANCE)
 
 

@@ -7,16 +7,20 @@ import dataclasses
 import numpy as np
 import pytest
 
-from bonecad.config import load_config
 from bonecad.splines.curve import BSplineCurve
 from bonecad.contours.curves import contour_curves
 from bonecad.errors import InputError
-from bonecad.nurbs_model import FACE_NAMES, BSplineSurface, build_nurbs, write_nurbs
+from bonecad.export import export
+from bonecad.nurbs_model import FACE_NAMES, build_nurbs
+from bonecad.splines.surface import BSplineSurface
 from bonecad.occ import brep
 from bonecad.occ import surfaces as occ
 from bonecad.splines.surface import interpolate_clamped, interpolate_periodic, periodic_knots
 
 from .conftest import real_mesh_params
+from tests.defaults import SETTINGS, TESSELLATION, BANDS_MM
+from dataclasses import replace
+
 
 
 def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -68,17 +72,17 @@ def test_surface_matches_opencascade_and_reversal_keeps_points(rng):
 
 @pytest.fixture(scope="module")
 def contours(phantom, phantom_frame):
-    return contour_curves(phantom, phantom_frame)
+    return contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
 
 
 @pytest.fixture(scope="module")
 def ring_model(contours):
-    return build_nurbs(contours, apex_fill="ring")
+    return build_nurbs(contours, settings=replace(SETTINGS.nurbs, apex_fill="ring"))
 
 
 @pytest.fixture(scope="module")
 def patch_model(contours):
-    return build_nurbs(contours, apex_fill="patch")
+    return build_nurbs(contours, settings=replace(SETTINGS.nurbs, apex_fill="patch"))
 
 
 def check_solid(model, mesh_vol: float) -> None:
@@ -118,13 +122,12 @@ def test_shaft_meets_the_ends_exactly(ring_model):
 
 
 def test_compatible_curves_keep_the_contour_tolerances(ring_model):
-    tolerances = load_config()["curves"]
     for report in ring_model.refits:
-        assert report.max_deviation_mm <= tolerances[f"{report.region}_tolerance_mm"], report
+        assert report.max_deviation_mm <= getattr(SETTINGS.curves, f"{report.region}_tolerance_mm"), report
 
 
 def test_patch_caps_are_tangent_to_their_neighbours(patch_model):
-    tol = load_config()["nurbs"]["sewing_tolerance_mm"]
+    tol = SETTINGS.nurbs.sewing_tolerance_mm
     assert set(patch_model.patch_errors) == {"distal_apex_cap", "proximal_apex_cap"}
     for errors in patch_model.patch_errors.values():
         assert errors["g0_mm"] <= tol
@@ -134,11 +137,11 @@ def test_patch_caps_are_tangent_to_their_neighbours(patch_model):
 
 
 def test_deviation_from_the_phantom_mesh(ring_model, phantom):
-    from bonecad.analysis import TessellationSettings, shape_deviation
+    from bonecad.analysis import shape_deviation
 
     # 0.1 mm chords are enough: every sample is refined on the exact surface (checked below)
-    result = shape_deviation(phantom.vertices, phantom.faces, ring_model.shape, sample_points=20000,
-                             settings=TessellationSettings(deflection_mm=0.1, max_edge_mm=2.0))
+    result = shape_deviation(phantom.vertices, phantom.faces, ring_model.shape, edges_mm=BANDS_MM, sample_points=20000,
+                             settings=replace(TESSELLATION, deflection_mm=0.1, max_edge_mm=2.0))
     for direction in (result.mesh_to_cad, result.cad_to_mesh):
         dev, w = np.abs(direction.deviation_mm), direction.weights
         assert direction.refined.mean() > 0.99
@@ -154,7 +157,7 @@ def test_step_and_iges_round_trip(ring_model, tmp_path):
     from OCP.TopAbs import TopAbs_SOLID
     from OCP.TopExp import TopExp_Explorer
 
-    paths = write_nurbs(ring_model, tmp_path)
+    paths = export("nurbs", ring_model, tmp_path)
     text = paths["step"].read_text()
     for name in FACE_NAMES:
         assert f"ADVANCED_FACE('{name}'" in text
@@ -186,7 +189,7 @@ def test_left_tibia_gives_an_outward_solid(contours, phantom, ring_model):
     mirror = np.diag([-1.0, 1.0, 1.0])
     frame = dataclasses.replace(contours.frame, axes=contours.frame.axes @ mirror, origin=contours.frame.origin @ mirror)
     assert frame.mirrored
-    left = build_nurbs(dataclasses.replace(contours, frame=frame), apex_fill="ring")
+    left = build_nurbs(dataclasses.replace(contours, frame=frame), settings=replace(SETTINGS.nurbs, apex_fill="ring"))
     check_solid(left, mesh_volume(phantom.vertices @ mirror, phantom.faces[:, ::-1]))
     assert left.volume_mm3 == pytest.approx(ring_model.volume_mm3, rel=1e-6)
     # the mirror image of each surface point of the right model lies on the left model
@@ -196,7 +199,7 @@ def test_left_tibia_gives_an_outward_solid(contours, phantom, ring_model):
 
 def test_unknown_apex_fill_is_an_input_error(contours):
     with pytest.raises(InputError, match="apex_fill must be one of"):
-        build_nurbs(contours, apex_fill="plug")
+        build_nurbs(contours, settings=replace(SETTINGS.nurbs, apex_fill="plug"))
 
 
 # --- one real mesh (all five in benchmarks/bench_nurbs.py) ---------------------------------------
@@ -214,7 +217,7 @@ def test_real_mesh_gives_a_valid_closed_solid(path):
 
     bone = bonecad.load_bone(path)
     frame = bonecad.anatomical_frame(bone)
-    model = build_nurbs(contour_curves(bone, frame))
+    model = build_nurbs(contour_curves(bone, frame, settings=SETTINGS.curves), settings=SETTINGS.nurbs)
     check_solid(model, mesh_volume(bone.vertices, bone.faces))
 
 

@@ -101,15 +101,14 @@ def test_an_error_in_the_frame_stage_exits_2_and_leaves_nothing(tmp_path, phanto
 def test_background_jobs_change_nothing_but_time(tmp_path, phantom):
     """The second core's jobs (bonecad.run.executor) give the same models and figures as one process:
     every file byte for byte (STEP, IGES, JSON, PNG), the report but for its timings."""
-    from bonecad.config import load_config
     from bonecad.run.pipeline import reconstruct_bone
+    from bonecad.settings import Settings
 
     reports = []
     for background in (True, False):
-        config = load_config()
-        config["pipeline"]["background_jobs"] = background
+        settings = Settings.load(overrides={"pipeline": {"background_jobs": background}})
         out = tmp_path / f"background_{background}"
-        result = reconstruct_bone(phantom, out, config=config)
+        result = reconstruct_bone(phantom, out, settings)
         assert result.models["nurbs"].control_points > 0 and result.models["tspline"].control_points > 0
         report = json.loads((out / "report.json").read_text())
         for model in report["models"].values():

@@ -3,18 +3,24 @@ correction converges as control points are added, and local refinement
 reaches a tolerance with fewer control points than whole knot lines."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from bonecad.settings import Settings
 from bonecad.splines.tspline import TSpline, check_suitability
 from bonecad.splines.tspline.fit import (
-    FitTolerances,
     fit_adaptive,
     initial_parameters,
     project_points,
     solve_control_points,
 )
+from bonecad.tspline_model.model import tolerances
+
+#: the shipped [tspline] settings as fit tolerances (the tests change a few)
+DEFAULT_TOLERANCES = tolerances(Settings.load().tspline)
 
 RADIUS, LENGTH = 10.0, 60.0
 PERIOD = 2 * np.pi * RADIUS  # s in mm of arc at the nominal radius
@@ -92,7 +98,7 @@ def test_projection_finds_the_closest_point():
 def test_local_refinement_needs_fewer_control_points_than_a_tensor_product(tol_mm):
     rng = np.random.default_rng(2)
     pts, s, t = bumpy_tube(12000, rng)
-    tol = FitTolerances(share_within=(0.99, tol_mm), max_deviation_mm=2.5 * tol_mm, rms_mm=tol_mm / 2,
+    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, tol_mm), max_deviation_mm=2.5 * tol_mm, rms_mm=tol_mm / 2,
                         min_element_mm=0.05, max_rounds=8, mark_fraction=0.6)
     local = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6, mode="local")
     glob = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6, mode="global")
@@ -111,7 +117,7 @@ def test_local_refinement_needs_fewer_control_points_than_a_tensor_product(tol_m
 def test_budget_stops_refinement_and_says_so():
     rng = np.random.default_rng(3)
     pts, s, t = bumpy_tube(4000, rng)
-    tol = FitTolerances(share_within=(0.99, 0.001), max_deviation_mm=0.002, rms_mm=0.0005, max_control_points=150)
+    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.001), max_deviation_mm=0.002, rms_mm=0.0005, max_control_points=150)
     res = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6)
     assert not res.converged
     assert "budget (150)" in res.stopped
@@ -129,7 +135,7 @@ def test_staircase_is_recognised_and_stops_refinement_at_its_noise():
     assert voxel_step_mm(stair) == pytest.approx(1.0)
     noise = local_noise_mm(stair, voxel_mm=voxel_step_mm(stair))
     assert noise.min() >= 1.0 / np.sqrt(12) - 1e-12
-    tol = FitTolerances(share_within=(0.99, 0.1), max_deviation_mm=1.0, rms_mm=0.05, max_control_points=5000,
+    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.1), max_deviation_mm=1.0, rms_mm=0.05, max_control_points=5000,
                         min_element_mm=0.05, max_rounds=8, mark_fraction=0.6)
     free = fit_adaptive(cylinder(8, 4), stair, s=s, t=t, tolerances=tol, fairness=1e-6)
     aware = fit_adaptive(cylinder(8, 4), stair, s=s, t=t, tolerances=tol, fairness=1e-6, noise=noise)
@@ -220,7 +226,7 @@ def test_once_share_and_rms_hold_only_points_beyond_the_maximum_ask_for_refineme
     n = 20000
     s, t = rng.uniform(0, PERIOD, n), rng.uniform(0, LENGTH, n)
     elem, _, _ = ts.extraction.locate(s, t)
-    tol = FitTolerances(share_within=(0.99, 0.25), max_deviation_mm=1.0, rms_mm=0.1, mark_fraction=0.6,
+    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.25), max_deviation_mm=1.0, rms_mm=0.1, mark_fraction=0.6,
                         mark_deficit_factor=2.0, min_element_mm=0.1)
     distance = np.full(n, 0.05)
     distance[: n // 200] = 0.4  # 0.5 % beyond 0.25 mm: the share holds

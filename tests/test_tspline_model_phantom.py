@@ -8,15 +8,19 @@ import numpy as np
 import pytest
 
 from bonecad.splines.tspline import check_suitability
-from bonecad.tspline_model import build_tspline_model, write_tspline
+from bonecad.export import export
+from bonecad.tspline_model import build_tspline_model
+from tests.defaults import SETTINGS, TESSELLATION, BANDS_MM
+from dataclasses import replace
+
 
 
 @pytest.fixture(scope="module")
 def model(phantom, phantom_frame):
     from bonecad.contours.curves import contour_curves
 
-    contours = contour_curves(phantom, phantom_frame)
-    return build_tspline_model(phantom, phantom_frame, contours, compare_tensor_product=False)
+    contours = contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
+    return build_tspline_model(phantom, phantom_frame, contours, settings=SETTINGS.tspline, apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
 
 
 def test_fit_meets_the_bars_with_local_refinement(model):
@@ -68,7 +72,7 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
     from OCP.GProp import GProp_GProps
     from OCP.TopAbs import TopAbs_SOLID
 
-    from bonecad.analysis import TessellationSettings, shape_deviation
+    from bonecad.analysis import shape_deviation
     from bonecad.occ.brep import is_valid
 
     shape = model.shape
@@ -80,8 +84,8 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
     assert abs(props.Mass() - mesh_volume) < 0.01 * mesh_volume
     # small, strongly curved faces (apex caps, plateau rim) lose up to ~0.6 % of area to the
     # chordal tessellation: allow 1 % instead of the 0.5 % default
-    dev = shape_deviation(phantom.vertices, phantom.faces, shape, sample_points=20000,
-                          settings=TessellationSettings(coverage_tolerance=0.01))
+    dev = shape_deviation(phantom.vertices, phantom.faces, shape, edges_mm=BANDS_MM, sample_points=20000,
+                          settings=replace(TESSELLATION, coverage_tolerance=0.01))
     d = np.abs(dev.mesh_to_cad.deviation_mm)
     w = dev.mesh_to_cad.weights
     assert w[d <= 0.25].sum() / w.sum() >= 0.99
@@ -93,7 +97,7 @@ def test_write_tspline_round_trips(model, tmp_path):
     from bonecad.occ.brep import is_valid, volume_mm3
     from bonecad.occ.exchange import read_step
 
-    paths = write_tspline(model, tmp_path)
+    paths = export("tspline", model, tmp_path)
     assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json"}
     back = read_step(paths["step"])
     solids = back.solids()

@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 
 from .conftest import TIBIA_DIR
+from tests.defaults import SETTINGS, TESSELLATION, BANDS_MM
+from dataclasses import replace
+
 
 SMOOTH_TIBIA = TIBIA_DIR / "LHDL_CT_tibia_no_fib_r.stl"
 pytestmark = pytest.mark.skipif(not SMOOTH_TIBIA.is_file(), reason=f"real mesh {SMOOTH_TIBIA} is absent")
@@ -29,7 +32,7 @@ def staircase(truth):
     from bonecad.mesh.intake import prepare_bone
 
     vertices, faces = staircase_mesh(truth.vertices, truth.faces, 1.0)
-    return prepare_bone(vertices, faces, source="LHDL staircase")
+    return prepare_bone(vertices, faces, source="LHDL staircase", settings=SETTINGS.mesh, plausible=SETTINGS.units)
 
 
 def test_staircase_is_the_binary_mask_surface(truth, staircase):
@@ -48,19 +51,19 @@ def test_staircase_is_the_binary_mask_surface(truth, staircase):
 
 def test_fit_to_the_staircase_recovers_the_bone(truth, staircase):
     import bonecad
-    from bonecad.analysis import TessellationSettings, shape_deviation
+    from bonecad.analysis import shape_deviation
     from bonecad.contours.curves import contour_curves
     from bonecad.tspline_model import build_tspline_model
 
     frame = bonecad.anatomical_frame(staircase)
-    model = build_tspline_model(staircase, frame, contour_curves(staircase, frame), compare_tensor_product=False)
+    model = build_tspline_model(staircase, frame, contour_curves(staircase, frame, settings=SETTINGS.curves), settings=SETTINGS.tspline, apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
     assert "up to the data's noise" in model.fit.stopped, model.fit.stopped
     assert model.summary()["staircase_voxel_mm"] == pytest.approx(1.0)
     # Chasing the steps to the 20000-point budget took 19484 points and left the
     # surface farther from the bone (92 % within 0.25 mm): the noise stop needs 1228.
     assert model.control_points < 3000
-    dev = shape_deviation(truth.vertices, truth.faces, model.shape, sample_points=50_000,
-                          settings=TessellationSettings(coverage_tolerance=0.01))
+    dev = shape_deviation(truth.vertices, truth.faces, model.shape, edges_mm=BANDS_MM, sample_points=50_000,
+                          settings=replace(TESSELLATION, coverage_tolerance=0.01))
     bone_to_model = dev.mesh_to_cad
     assert bone_to_model.share_within(0.25) >= 0.96
     assert np.abs(bone_to_model.deviation_mm).max() <= 1.0

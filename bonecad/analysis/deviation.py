@@ -37,12 +37,11 @@ from typing import Callable, Union
 
 import numpy as np
 
-from bonecad.config import load_config
 from bonecad.errors import InputError
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.closest import TriangleLocator, vertex_normals
 from bonecad.splines.evaluate import project_faces
-from bonecad.analysis.statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram, share_within
+from bonecad.analysis.statistics import DeviationStats, Histogram, deviation_stats, histogram, share_within
 from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
 
 #: the anatomical regions a caller can label samples with
@@ -316,10 +315,10 @@ def summarise(
     weights: np.ndarray,
     labels: np.ndarray,
     refined: np.ndarray,
-    edges_mm: np.ndarray | None = None,
+    edges_mm: np.ndarray,
 ) -> DirectionResult:
-    """Statistics and histograms overall and per region label (labels '' mean none)."""
-    edges = band_edges() if edges_mm is None else edges_mm
+    """Statistics and histograms (band edges in mm) overall and per region label (labels '' mean none)."""
+    edges = edges_mm
     region_stats, region_hists = {}, {}
     for name in REGIONS:
         sel = labels == name
@@ -345,7 +344,8 @@ def shape_deviation(
     shape,
     *,
     regions: RegionSpec = None,
-    sample_points: int | None = None,
+    sample_points: int,
+    edges_mm: np.ndarray,
     seed: int = 0,
     tessellation: Tessellation | None = None,
     settings: TessellationSettings | None = None,
@@ -357,13 +357,14 @@ def shape_deviation(
     shape : OCP TopoDS_Shape (closed shell or solid; faces oriented outwards)
     regions : function of (N, 3) points returning N labels from :data:`REGIONS`,
         applied to the samples of both directions; None for no regions
-    sample_points : samples per direction (default ``[analysis] sample_points``)
+    sample_points : samples per direction (``[analysis] sample_points``)
+    edges_mm : histogram band edges (``statistics.band_edges``)
     seed : seed of the area-weighted sampling (same seed, same samples)
     tessellation : reuse a tessellation of ``shape`` (else one is made)
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
-    count = int(load_config()["analysis"]["sample_points"] if sample_points is None else sample_points)
+    count = sample_points
     timings = {}
     t0 = time.perf_counter()
     tess = tessellation or tessellate(shape, settings)
@@ -374,7 +375,7 @@ def shape_deviation(
     shape_locator = TriangleLocator(tess.vertices, tess.triangles)  # shared with the vertex distances
     sd = signed_distance_to_shape(samples.points, tess, locator=shape_locator)
     forward = summarise(
-        samples.points, sd.distance_mm, samples.weights, _labels(samples.points, regions), sd.refined
+        samples.points, sd.distance_mm, samples.weights, _labels(samples.points, regions), sd.refined, edges_mm
     )
     timings["mesh_to_cad"] = time.perf_counter() - t0
 
@@ -384,7 +385,7 @@ def shape_deviation(
     near = locator.query(cad_points)
     normal = np.einsum("nk,nkj->nj", near.barycentric, vertex_normals(vertices, faces)[faces[near.triangle]])
     back_dev = -_signed(cad_points, near.points, normal)
-    backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), on_surface)
+    backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), on_surface, edges_mm)
     timings["cad_to_mesh"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # the colour map's: a picture, interpolated across the mesh's triangles

@@ -1,8 +1,7 @@
-"""Analyse one CAD model of a bone: deviation both ways, seam and knot continuity, figures.
+"""Stage 6: analyse one CAD model of a bone: deviation both ways, seam and knot continuity.
 
-The glue between a model stage and the report: regions come from the
-anatomical frame, views from its axes, and every figure is written into the
-caller's (staged) output folder.
+Pure: it reads the model's solid and the bone, and returns figures (no files;
+the runner renders and writes them). Regions come from the anatomical frame.
 """
 from __future__ import annotations
 
@@ -13,15 +12,16 @@ from typing import Any
 
 import numpy as np
 
+from bonecad.analysis.deviation import DeviationResult, shape_deviation
+from bonecad.analysis.statistics import settings_band_edges
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.mesh.bone_mesh import BoneMesh
-from bonecad.run.executor import JobGroup
-from bonecad.occ.continuity import KnotContinuity, SeamContinuity, knot_continuity, seam_continuity
-from bonecad.analysis.deviation import DeviationResult, shape_deviation
-from bonecad.render.figures import deviation_map_png, histogram_png, zebra_png
-from bonecad.occ.tessellate import tessellate
+from bonecad.occ.continuity import (ContinuityTolerances, KnotContinuity, SeamContinuity, knot_continuity,
+                                    seam_continuity)
+from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
+from bonecad.settings import AnalysisSettings
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -52,56 +52,48 @@ def region_labels(frame: AnatomicalFrame):
     return labels
 
 
-def analyse_model(
-    name: str,
-    shape,
-    bone: BoneMesh,
-    frame: AnatomicalFrame,
-    out_dir: Path,
-    *,
-    info: dict,
-    sample_points: int | None = None,
-    face_names: list[tuple[str, object]] | None = None,
-    jobs: JobGroup | None = None,
-) -> ModelReport:
-    """Deviation, continuity and figures (``{name}_deviation.png``, ``{name}_histogram.png``,
-    ``{name}_zebra.png``) of ``shape`` (a TopoDS_Shape in scanner mm) against ``bone``.
+def tessellation_settings(settings: AnalysisSettings) -> TessellationSettings:
+    """The tessellation tolerances of the [analysis] settings."""
+    return TessellationSettings(
+        deflection_mm=settings.tessellation_deflection_mm,
+        angular_deflection_rad=settings.tessellation_angular_deflection_rad,
+        coverage_tolerance=settings.coverage_tolerance,
+        area_rel_eps=settings.area_rel_eps,
+        max_edge_mm=settings.tessellation_max_edge_mm,
+        small_face_factor=settings.small_face_shortfall_factor,
+    )
 
-    face_names : (name, TopoDS_Face) of the faces, as the model names them:
-    the continuity is then also counted per pair of face names.
-    jobs : a group of background jobs (``bonecad.run.executor``): the zebra figure
-    and the continuity are then made on the second core while the deviation is
-    measured here, and the colour map while the histogram is drawn; None: all
-    in this process.
-    """
-    view_frame = frame.axes.T  # columns: lateral, anterior, proximal
-    tess = tessellate(shape)
-    zebra_path = out_dir / f"{name}_zebra.png"
-    title = f"{name}: zebra (reflection lines)"
-    args = (shape, tess, zebra_path, view_frame, title, face_names)
-    side = None if jobs is None else jobs.start(_zebra_and_continuity, *args)
-    deviation = shape_deviation(
-        bone.vertices, bone.faces, shape, regions=region_labels(frame), sample_points=sample_points, tessellation=tess
+
+def continuity_tolerances(settings: AnalysisSettings) -> ContinuityTolerances:
+    """The seam-class thresholds of the [analysis] settings."""
+    return ContinuityTolerances(
+        gap_mm=settings.continuity_gap_mm,
+        angle_deg=settings.continuity_angle_deg,
+        curvature_jump=settings.continuity_curvature_jump,
+        curvature_radius_ref_mm=settings.continuity_curvature_radius_ref_mm,
     )
-    map_args = (out_dir / f"{name}_deviation.png", bone.vertices, bone.faces, deviation.vertex_deviation_mm,
-                view_frame)
-    map_title = f"{name}: deviation of the mesh from the CAD model, mm"
-    map_job = None if jobs is None else jobs.start(deviation_map_png, *map_args, title=map_title)
-    histogram = histogram_png(
-        out_dir / f"{name}_histogram.png",
-        {"whole bone": deviation.mesh_to_cad.histogram, **deviation.mesh_to_cad.region_histograms},
-        title=f"{name}: share of surface per deviation band",
-    )
-    colour_map = deviation_map_png(*map_args, title=map_title) if map_job is None else map_job.result()[0]
-    zebra, continuity, knots = _zebra_and_continuity(*args) if side is None else side.result()[0]
-    figures = {"deviation": colour_map, "histogram": histogram, "zebra": zebra}
+
+
+def tessellate_model(shape, settings: AnalysisSettings) -> Tessellation:
+    """The model's tessellation (scanner mm), shared by the deviation, the continuity and the figures."""
+    return tessellate(shape, tessellation_settings(settings))
+
+
+def model_deviation(shape, tess: Tessellation, bone: BoneMesh, frame: AnatomicalFrame,
+                    settings: AnalysisSettings) -> DeviationResult:
+    """Signed deviation between the bone mesh and the model, both ways, overall and per region."""
+    deviation = shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame),
+                                sample_points=settings.sample_points, edges_mm=settings_band_edges(settings),
+                                tessellation=tess)
     stats = deviation.mesh_to_cad.stats
-    log.info("%s: RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", name, stats.rms_mm, stats.max_outside_mm,
+    log.info("RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", stats.rms_mm, stats.max_outside_mm,
              stats.max_inside_mm)
-    return ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots, figures=figures)
+    return deviation
 
 
-def _zebra_and_continuity(shape, tess, path: Path, view_frame: np.ndarray, title: str, face_names):
-    """The zebra figure, the seam continuity and the knot continuity of a tessellated shape."""
-    return (zebra_png(path, tess, view_frame, title=title),
-            seam_continuity(shape, tessellation=tess, face_names=face_names), knot_continuity(shape))
+def model_continuity(shape, tess: Tessellation, face_names, settings: AnalysisSettings
+                     ) -> tuple[SeamContinuity, list[KnotContinuity]]:
+    """Seam classes of every shared edge (counted per pair of face names) and the knot continuity."""
+    seams = seam_continuity(shape, tessellation=tess, face_names=face_names,
+                            tolerances=continuity_tolerances(settings))
+    return seams, knot_continuity(shape)

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from bonecad.config import load_config
 from bonecad.errors import InputError
+from bonecad.settings import AnalysisSettings
 
 #: percentiles of |deviation| reported by :class:`DeviationStats`
 PERCENTILES = (50.0, 90.0, 95.0, 99.0, 99.9)
@@ -86,24 +86,27 @@ class Histogram:
         return cls(edges, shares)
 
 
-def band_edges(band_width_mm: float | None = None, band_limit_mm: float | None = None) -> np.ndarray:
-    """Band edges from -limit to +limit in steps of width (defaults from ``[analysis]``)."""
-    cfg = load_config()["analysis"]
-    width = cfg["band_width_mm"] if band_width_mm is None else band_width_mm
-    limit = cfg["band_limit_mm"] if band_limit_mm is None else band_limit_mm
+def settings_band_edges(settings: AnalysisSettings) -> np.ndarray:
+    """The histogram band edges (mm) of the ``[analysis]`` settings."""
+    return band_edges(settings.band_width_mm, settings.band_limit_mm)
+
+
+def band_edges(band_width_mm: float, band_limit_mm: float) -> np.ndarray:
+    """Band edges from -limit to +limit in steps of width (mm; ``[analysis]`` settings)."""
+    width, limit = band_width_mm, band_limit_mm
     if width <= 0 or limit <= 0:
-        raise InputError(f"band width and limit must be > 0, got {width} and {limit}")
+        raise ValueError(f"band width and limit must be > 0, got {width} and {limit}")
     count = int(round(2 * limit / width))
     if abs(count * width - 2 * limit) > 1e-9 * limit:
-        raise InputError(f"band limit {limit} mm is not a whole number of {width} mm bands")
+        raise ValueError(f"band limit {limit} mm is not a whole number of {width} mm bands")
     return np.round(np.linspace(-limit, limit, count + 1), 9)
 
 
-def histogram(deviation_mm: np.ndarray, weights: np.ndarray | None = None, edges_mm: np.ndarray | None = None) -> Histogram:
-    """Weighted share of deviations per band (edges default to :func:`band_edges`)."""
+def histogram(deviation_mm: np.ndarray, weights: np.ndarray | None, edges_mm: np.ndarray) -> Histogram:
+    """Weighted share of deviations per band (``edges_mm`` from :func:`band_edges`)."""
     d = np.asarray(deviation_mm, dtype=np.float64)
     w = np.ones_like(d) if weights is None else np.asarray(weights, dtype=np.float64)
-    edges = band_edges() if edges_mm is None else np.asarray(edges_mm, dtype=np.float64)
+    edges = np.asarray(edges_mm, dtype=np.float64)
     if d.shape != w.shape:
         raise InputError(f"deviation {d.shape} and weights {w.shape} differ in shape")
     if len(d) == 0 or w.sum() <= 0:

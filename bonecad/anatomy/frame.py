@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.config import load_config
 from bonecad.errors import FitError, InputError
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.sampling import triangle_areas
+from bonecad.settings import AnatomySettings, UnitsSettings
 from bonecad.mesh.sections import plane_basis, section_mesh, section_stack
 from bonecad.anatomy.ellipse import fit_ellipse
 
@@ -207,23 +207,22 @@ def _missing_end_description(bone, centre, axis, lo, hi, missing) -> str:
 def anatomical_frame(
     bone: BoneMesh,
     *,
-    config: dict | None = None,
-    distal_boundary_mm: float | None = None,
-    proximal_boundary_mm: float | None = None,
+    settings: AnatomySettings,
+    plausible: UnitsSettings,
 ) -> AnatomicalFrame:
     """Find the tibia's frame from its anatomy (never from file names or scanner axes).
 
-    Region boundaries are heights above the plafond centre (mm); by default
-    they are where the metaphyses flare (see ``_region_boundaries``).
+    Region boundaries are heights above the plafond centre (mm): the settings'
+    when given (non-zero), else where the metaphyses flare (see ``_region_boundaries``).
+    plausible : the whole tibia's length range (mm).
     """
-    config = config or load_config()
-    anat = config["anatomy"]
+    anat = settings
     vertices, faces = bone.vertices, bone.faces
     centre, axis = _area_weighted_axis(vertices, faces)
     heights = (vertices - centre) @ axis
     lo, hi = float(heights.min()), float(heights.max())
     length = hi - lo
-    lo_range, hi_range = config["units"]["tibia_length_mm"]
+    lo_range, hi_range = plausible.tibia_length_mm
     _check_ends_whole(bone, centre, axis, heights, lo, hi)
     if not lo_range <= length <= hi_range:
         raise InputError(
@@ -274,8 +273,8 @@ def anatomical_frame(
     )
 
     default_distal, default_proximal = _region_boundaries(vertices, faces, plafond_centre, z, mech_length, anat)
-    distal_b = default_distal if distal_boundary_mm is None else float(distal_boundary_mm)
-    proximal_b = default_proximal if proximal_boundary_mm is None else float(proximal_boundary_mm)
+    distal_b = settings.distal_boundary_mm or default_distal
+    proximal_b = settings.proximal_boundary_mm or default_proximal
     h_lo, h_hi = float(h.min()), float(h.max())
     if not h_lo < distal_b < proximal_b < h_hi:
         raise InputError(
@@ -304,7 +303,7 @@ def anatomical_frame(
 
 def _plateau(vertices, faces, centre, z, heights, hi, length, anat) -> PlateauEllipse:
     """Ellipse fitted to the widest section just below the proximal articular surface."""
-    depth = anat["plateau_search_share"] * length
+    depth = anat.plateau_search_share * length
     levels = hi - np.linspace(0.1, 1.0, 10) * depth
     areas, _ = section_stack(vertices, faces, centre, z, levels)
     best = int(np.argmax(areas))
@@ -330,7 +329,7 @@ def _plafond_centre(vertices, faces, centre, z, heights, lo, length, anat) -> np
     """Centroid of distal cross-sections just above the distal articular surface."""
     normals, areas = _unit_normals(vertices, faces)
     face_h = heights[faces].mean(axis=1)
-    search = lo + anat["plafond_search_share"] * length
+    search = lo + anat.plafond_search_share * length
     facing = (face_h < search) & (normals @ -z > 0.7)
     if areas[facing].sum() <= 0:
         raise FitError("no distal articular surface found (no distal-facing faces near the distal end)")
@@ -387,8 +386,8 @@ def _region_boundaries(vertices, faces, origin, z, mech_length, anat) -> tuple[f
     shaft = (levels > 0.3 * mech_length) & (levels < 0.7 * mech_length)
     mid = int(np.argmin(np.where(shaft, areas, np.inf)))
     narrowest = areas[mid]
-    wide_below = np.flatnonzero(areas[:mid] > anat["distal_flare_ratio"] * narrowest)
-    wide_above = np.flatnonzero(areas[mid:] > anat["proximal_flare_ratio"] * narrowest)
+    wide_below = np.flatnonzero(areas[:mid] > anat.distal_flare_ratio * narrowest)
+    wide_above = np.flatnonzero(areas[mid:] > anat.proximal_flare_ratio * narrowest)
     if len(wide_below) == 0 or len(wide_above) == 0:
         raise FitError("the metaphyses do not flare: cannot place the region boundaries (pass them explicitly)")
     return float(levels[wide_below[-1] + 1]), float(levels[mid + wide_above[0] - 1])

@@ -16,19 +16,20 @@ every tibia looks like a right one (see ``anatomy.frame``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from scipy.interpolate import CubicSpline
 
 from bonecad.anatomy.frame import AnatomicalFrame
-from bonecad.config import load_config
 from bonecad.errors import FitError
 from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.settings import CurvesSettings
 from bonecad.mesh.sections import LevelSections, section_mesh
-from bonecad.run.executor import JobGroup
 from bonecad.splines.curve import BSplineCurve, fit_curve
 
 REGIONS = ("distal", "shaft", "proximal")
+EndRegion = Literal["distal", "proximal"]
 
 
 @dataclass(frozen=True)
@@ -258,71 +259,96 @@ def choose_shaft_levels(
     return fine[idx], p99, worst
 
 
-def contour_curves(bone: BoneMesh, frame: AnatomicalFrame, *, config: dict | None = None,
-                   jobs: JobGroup | None = None) -> ContourSet:
-    """Section the bone and rebuild every contour curve as a cubic B-spline (bone coordinates).
+@dataclass(frozen=True)
+class ShaftCurves:
+    """The shaft's closed sections, and the predicted error of a cubic loft through them (mm)."""
 
-    jobs : a group of background jobs (``bonecad.run.executor``): the proximal curves
-    are then fitted on the second core while the distal and shaft curves are fitted here.
-    """
-    config = config or load_config()
-    cc = config["curves"]
-    degree = int(cc["degree"])
-    vertices, faces = bone_coordinates(bone, frame)
-    apex = float(cc["apex_hole_radius_mm"])
-    z_d, z_p = frame.distal_boundary_mm, frame.proximal_boundary_mm
-    x_axis = np.array([1.0, 0.0, 0.0])
-    z_axis = np.array([0.0, 0.0, 1.0])
+    curves: tuple[ContourCurve, ...]
+    loft_error_p99_mm: float
+    loft_error_max_mm: float
 
-    local_bone = frame.to_bone(frame.local_proximal_axis)  # plateau centre, lowest proximal centroid
+
+def _proximal_axis(frame: AnatomicalFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The local proximal axis in bone coordinates (plateau centre, lowest proximal centroid) and its
+    unit direction towards the plateau."""
+    local_bone = frame.to_bone(frame.local_proximal_axis)
     local_dir = local_bone[0] - local_bone[1]
-    local_dir /= np.linalg.norm(local_dir)
+    return local_bone, local_dir / np.linalg.norm(local_dir)
 
-    def open_curves(region, angles, axis_point, axis_dir, boundary, towards, count, tol):
-        curves = []
-        for i, angle in enumerate(angles):
-            raw, notes = half_plane_polyline(vertices, faces, axis_point, axis_dir, x_axis, float(angle),
-                                             boundary, towards, apex)
-            fit = fit_curve(raw, count, periodic=False, degree=degree)
-            if fit.outliers:
-                notes.append(f"bridged {fit.outliers} outlying section point(s) (peaks from holes or artefacts)")
-            curves.append(ContourCurve(region, i, fit.curve, raw, tol, fit.max_deviation_mm,
-                                       fit.rms_deviation_mm, angle_deg=float(angle), repairs=tuple(notes)))
-        return tuple(curves)
 
-    proximal_args = ("proximal", cc["proximal_angles_deg"], local_bone[0], local_dir, z_p, +1,
-                     int(cc["proximal_control_points"]), float(cc["proximal_tolerance_mm"]))
-    proximal_job = None if jobs is None else jobs.start(open_curves, *proximal_args)
-    distal = open_curves("distal", cc["distal_angles_deg"], np.zeros(3), z_axis, z_d, -1,
-                         int(cc["distal_control_points"]), float(cc["distal_tolerance_mm"]))
+def end_curves(bone: BoneMesh, frame: AnatomicalFrame, region: EndRegion, *,
+               settings: CurvesSettings) -> tuple[ContourCurve, ...]:
+    """The half-plane curves of one end region (bone coordinates): distal ones about the mechanical
+    axis, proximal ones about the local proximal axis, each from the apex hole to the region boundary."""
+    vertices, faces = bone_coordinates(bone, frame)
+    x_axis = np.array([1.0, 0.0, 0.0])
+    if region == "distal":
+        axis_point, axis_dir, boundary, towards = np.zeros(3), np.array([0.0, 0.0, 1.0]), frame.distal_boundary_mm, -1
+        angles, count, tol = settings.distal_angles_deg, settings.distal_control_points, settings.distal_tolerance_mm
+    else:
+        local_bone, axis_dir = _proximal_axis(frame)
+        axis_point, boundary, towards = local_bone[0], frame.proximal_boundary_mm, +1
+        angles, count = settings.proximal_angles_deg, settings.proximal_control_points
+        tol = settings.proximal_tolerance_mm
+    curves = []
+    for i, angle in enumerate(angles):
+        raw, notes = half_plane_polyline(vertices, faces, axis_point, axis_dir, x_axis, float(angle),
+                                         boundary, towards, settings.apex_hole_radius_mm)
+        fit = fit_curve(raw, count, periodic=False, degree=settings.degree)
+        if fit.outliers:
+            notes.append(f"bridged {fit.outliers} outlying section point(s) (peaks from holes or artefacts)")
+        curves.append(ContourCurve(region, i, fit.curve, raw, tol, fit.max_deviation_mm,
+                                   fit.rms_deviation_mm, angle_deg=float(angle), repairs=tuple(notes)))
+    return tuple(curves)
 
-    # Shaft sections start on the ray at angle 0 from a centre line that
-    # runs from the mechanical axis (distal boundary) to the local axis
-    # (proximal boundary), so they start where curve 0 of each end region ends.
+
+def shaft_curves(bone: BoneMesh, frame: AnatomicalFrame, *, settings: CurvesSettings) -> ShaftCurves:
+    """The shaft's closed sections perpendicular to the mechanical axis (bone coordinates).
+
+    They start on the ray at angle 0 from a centre line that runs from the
+    mechanical axis (distal boundary) to the local axis (proximal boundary), so
+    they start where curve 0 of each end region ends.
+    """
+    vertices, faces = bone_coordinates(bone, frame)
+    z_d, z_p = frame.distal_boundary_mm, frame.proximal_boundary_mm
+    local_bone, _ = _proximal_axis(frame)
+
     def centre_at(level: float) -> np.ndarray:
         share = np.clip((level - z_d) / (z_p - z_d), 0.0, 1.0)
         return share * local_bone[1, :2]
 
-    shaft_tol = float(cc["shaft_tolerance_mm"])
-    count = int(cc["shaft_control_points"])
-    stack = LevelSections(vertices, faces, np.zeros(3), z_axis)
+    tol, count = settings.shaft_tolerance_mm, settings.shaft_control_points
+    stack = LevelSections(vertices, faces, np.zeros(3), np.array([0.0, 0.0, 1.0]))
     levels, predicted, worst = choose_shaft_levels(
-        stack, z_d, z_p, centre_at, shaft_tol, count // 2, float(cc["shaft_min_spacing_mm"]),
-        int(cc["shaft_sections"]),
-    )
+        stack, z_d, z_p, centre_at, tol, count // 2, settings.shaft_min_spacing_mm, settings.shaft_sections)
     shaft = []
     for i, level in enumerate(levels):
         raw, notes = _closed_section(stack, float(level), centre_at(level))
-        fit = fit_curve(raw, count, periodic=True, degree=degree)
+        fit = fit_curve(raw, count, periodic=True, degree=settings.degree)
         if fit.outliers:
             notes.append(f"bridged {fit.outliers} outlying section point(s) (peaks from holes or artefacts)")
-        shaft.append(ContourCurve("shaft", i, fit.curve, raw, shaft_tol, fit.max_deviation_mm,
+        shaft.append(ContourCurve("shaft", i, fit.curve, raw, tol, fit.max_deviation_mm,
                                   fit.rms_deviation_mm, level_mm=float(level), repairs=tuple(notes)))
-    proximal = open_curves(*proximal_args) if proximal_job is None else proximal_job.result()[0]
+    return ShaftCurves(tuple(shaft), float(predicted), float(worst))
+
+
+def assemble_contours(frame: AnatomicalFrame, distal: tuple[ContourCurve, ...], shaft: ShaftCurves,
+                      proximal: tuple[ContourCurve, ...]) -> ContourSet:
+    """The three regions' curves as one set, with notes on the shaft loft."""
+    tol = shaft.curves[0].tolerance_mm if shaft.curves else 0.0
     notes = [
-        f"{len(levels)} shaft sections: a cubic loft through them follows 99 % of the shaft within "
-        f"{predicted:.3f} mm (worst {worst:.3f} mm) of its sections sampled every 2 mm"
+        f"{len(shaft.curves)} shaft sections: a cubic loft through them follows 99 % of the shaft within "
+        f"{shaft.loft_error_p99_mm:.3f} mm (worst {shaft.loft_error_max_mm:.3f} mm) of its sections sampled every 2 mm"
     ]
-    if predicted > shaft_tol:
-        notes.append(f"shaft loft error {predicted:.3f} mm is above the {shaft_tol} mm tolerance")
-    return ContourSet(frame, distal, tuple(shaft), proximal, local_bone, predicted, tuple(notes))
+    if shaft.loft_error_p99_mm > tol:
+        notes.append(f"shaft loft error {shaft.loft_error_p99_mm:.3f} mm is above the {tol} mm tolerance")
+    return ContourSet(frame, distal, shaft.curves, proximal, _proximal_axis(frame)[0], shaft.loft_error_p99_mm,
+                      tuple(notes))
+
+
+def contour_curves(bone: BoneMesh, frame: AnatomicalFrame, *, settings: CurvesSettings) -> ContourSet:
+    """Section the bone and rebuild every contour curve as a cubic B-spline (bone coordinates), one
+    region after another (the runner fits the proximal region on the second core instead)."""
+    return assemble_contours(frame, end_curves(bone, frame, "distal", settings=settings),
+                             shaft_curves(bone, frame, settings=settings),
+                             end_curves(bone, frame, "proximal", settings=settings))

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from bonecad.errors import InputError
+from bonecad.export import exporter
 from bonecad.staging import staged_file
 from bonecad.occ.continuity import CLASSES, KnotContinuity, SeamContinuity
 from bonecad.analysis.deviation import DeviationResult
@@ -142,7 +143,7 @@ def build_report(
     """The report.json content (see module doc for the schema)."""
     names = [m.name for m in models]
     if len(set(names)) != len(names):
-        raise InputError(f"model names must be unique, got {names}")
+        raise ValueError(f"model names must be unique, got {names}")
     out_models = {}
     for m in models:
         out_models[m.name] = {
@@ -246,28 +247,38 @@ def render_html(report: dict[str, Any], figures: dict[str, dict[str, Path]]) -> 
     return "\n".join(parts)
 
 
-def write_report(
-    out_dir: str | Path,
-    *,
-    input_summary: dict[str, Any],
-    frame: dict[str, Any],
-    models: list[ModelReport],
-    timings_s: dict[str, float],
-) -> tuple[Path, Path]:
-    """Write ``report.json`` and ``report.html`` into ``out_dir`` (each file atomically).
+@dataclass(frozen=True)
+class ReportDocument:
+    """What the report holds: the input summary (file, bodies, side), the frame (``as_dict``), one
+    ``ModelReport`` per model, the run's stage timings (s)."""
 
-    The PNGs named in ``ModelReport.figures`` are embedded in the HTML; the JSON
-    refers to them by file name (they are expected beside the report).
-    """
-    out_dir = Path(out_dir)
-    for m in models:
-        for fig_name, path in m.figures.items():
-            if not Path(path).is_file():
-                raise InputError(f"figure '{fig_name}' of model '{m.name}' is missing", path)
-    report = build_report(input_summary=input_summary, frame=frame, models=models, timings_s=timings_s)
-    json_path, html_path = out_dir / "report.json", out_dir / "report.html"
-    with staged_file(json_path) as tmp:
-        tmp.write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
-    with staged_file(html_path) as tmp:
-        tmp.write_text(render_html(report, {m.name: m.figures for m in models}))
-    return json_path, html_path
+    input_summary: dict[str, Any]
+    frame: dict[str, Any]
+    models: tuple[ModelReport, ...]
+    timings_s: dict[str, float]
+
+    def build(self) -> dict[str, Any]:
+        for m in self.models:
+            for fig_name, path in m.figures.items():
+                if not Path(path).is_file():
+                    raise FileNotFoundError(f"figure '{fig_name}' of model '{m.name}' is missing: {path}")
+        return build_report(input_summary=self.input_summary, frame=self.frame, models=list(self.models),
+                            timings_s=self.timings_s)
+
+
+@exporter("report", "json")
+def report_json(doc: ReportDocument, out_dir: Path) -> Path:
+    """report.json (schema above); figures referred to by file name (they are expected beside it)."""
+    path = out_dir / "report.json"
+    with staged_file(path) as tmp:
+        tmp.write_text(json.dumps(doc.build(), indent=1, allow_nan=False) + "\n")
+    return path
+
+
+@exporter("report", "html")
+def report_html(doc: ReportDocument, out_dir: Path) -> Path:
+    """report.html: the same, with every figure embedded."""
+    path = out_dir / "report.html"
+    with staged_file(path) as tmp:
+        tmp.write_text(render_html(doc.build(), {m.name: m.figures for m in doc.models}))
+    return path

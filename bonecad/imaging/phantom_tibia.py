@@ -14,6 +14,7 @@ import numpy as np
 
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import prepare_bone
+from bonecad.settings import MeshSettings, UnitsSettings
 
 
 @dataclass(frozen=True)
@@ -80,12 +81,12 @@ def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> n
     return body
 
 
-def phantom_tibia(params: TibiaParameters | None = None) -> BoneMesh:
+def phantom_tibia(params: TibiaParameters, *, settings: MeshSettings, plausible: UnitsSettings) -> BoneMesh:
     """A closed triangle mesh of the phantom (a right tibia in bone coordinates, mm)."""
     from skimage.measure import marching_cubes
     import trimesh
 
-    p = params or TibiaParameters()
+    p = params
     h = p.voxel_mm
     margin = 3.0 * h
     # Grid offset by a fraction of a voxel: field values exactly zero at grid
@@ -102,4 +103,4 @@ def phantom_tibia(params: TibiaParameters | None = None) -> BoneMesh:
     mesh = trimesh.Trimesh(verts, faces, process=True)
     trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=10)
     source = "phantom:" + ",".join(f"{k}={v:g}" for k, v in asdict(p).items())
-    return prepare_bone(mesh.vertices, mesh.faces, source=source, units="mm")
+    return prepare_bone(mesh.vertices, mesh.faces, source=source, units="mm", settings=settings, plausible=plausible)

@@ -48,3 +48,23 @@ class BoneMesh:
     def face_areas(self) -> np.ndarray:
         """(m,) triangle areas in mm^2."""
         return triangle_areas(self.vertices, self.faces)
+
+    def summary(self) -> dict:
+        """JSON-ready input summary for frame.json and the report: file, units, bodies, repairs."""
+        return {
+            "file": self.source,
+            "units": self.units,
+            "triangles": self.triangle_count,
+            "watertight": self.watertight,
+            "bodies": [
+                {
+                    "role": b.role,
+                    "triangles": b.triangles,
+                    "volume_mm3": round(b.volume_mm3, 1),
+                    "length_mm": round(b.length_mm, 1),
+                    "centroid": np.round(b.centroid, 3).tolist(),
+                }
+                for b in self.bodies
+            ],
+            "repairs": list(self.repairs),
+        }

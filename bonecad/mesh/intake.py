@@ -13,9 +13,9 @@ from typing import Literal
 
 import numpy as np
 
-from bonecad.config import load_config
 from bonecad.errors import InputError
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
+from bonecad.settings import MeshSettings, UnitsSettings
 
 log = logging.getLogger("bonecad")
 
@@ -133,7 +133,8 @@ def load_bone(
     path: str | Path,
     *,
     units: Units = "auto",
-    config: dict | None = None,
+    settings: MeshSettings,
+    plausible: UnitsSettings,
 ) -> BoneMesh:
     """Read, clean and check a tibia mesh; keep the tibia body (the largest), report the others.
 
@@ -141,7 +142,7 @@ def load_bone(
     tibia broken into pieces, or a bone that is not long enough to be whole.
     """
     vertices, faces = read_mesh_file(path)
-    return prepare_bone(vertices, faces, source=path, units=units, config=config)
+    return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible)
 
 
 def prepare_bone(
@@ -150,20 +151,21 @@ def prepare_bone(
     *,
     source: str | Path = "",
     units: Units = "auto",
-    config: dict | None = None,
+    settings: MeshSettings,
+    plausible: UnitsSettings,
 ) -> BoneMesh:
-    """Clean raw mesh arrays and keep the tibia body (see ``load_bone``); ``source`` names them in errors."""
-    config = config or load_config()
+    """Clean raw mesh arrays and keep the tibia body (see ``load_bone``); ``source`` names them in errors.
+
+    plausible : the tibia length range that tells the units."""
     path = Path(source) if source else None
-    mesh_cfg = config["mesh"]
-    vertices, faces, repairs = _clean(vertices, faces, int(mesh_cfg["max_hole_edges"]))
+    vertices, faces, repairs = _clean(vertices, faces, settings.max_hole_edges)
     bodies = _bodies(vertices, faces)
     if not bodies or abs(bodies[0].volume) <= 0:
         raise InputError("has no closed body with a volume", path)
 
     tibia = bodies[0]
     axis, length, width = _principal_extent(tibia.vertices)
-    scale = _detect_scale(length, width, units, path, config["units"]["tibia_length_mm"])
+    scale = _detect_scale(length, width, units, path, plausible.tibia_length_mm)
     tibia_volume = abs(tibia.volume)
 
     infos: list[BodyInfo] = []
@@ -173,7 +175,7 @@ def prepare_bone(
         share = volume / tibia_volume
         if index == 0:
             role = "tibia"
-        elif share < mesh_cfg["fragment_volume_share"]:
+        elif share < settings.fragment_volume_share:
             role = "fragment"
         else:
             # A fibula lies beside the tibia, parallel to it; a broken piece of
@@ -183,7 +185,7 @@ def prepare_bone(
             parallel = abs(body_axis @ axis) > 0.9
             if parallel and along < 0.5 * length and body_length > 0.5 * length:
                 role = "fibula"
-            elif share >= mesh_cfg["broken_piece_volume_share"] or along > 0.4 * length:
+            elif share >= settings.broken_piece_volume_share or along > 0.4 * length:
                 role = "broken piece"
             else:
                 role = "fragment"

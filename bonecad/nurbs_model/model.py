@@ -1,37 +1,35 @@
-"""The NURBS baseline model (DESIGN.md step 4): build it from the contour curves, export it.
+"""The NURBS baseline model (DESIGN.md step 4), built from the contour curves.
 
 ::
 
-    contours = contour_curves(bone, frame)
-    model = build_nurbs(contours, apex_fill="patch")
+    contours = contour_curves(bone, frame, settings=settings.curves)
+    model = build_nurbs(contours, settings=settings.nurbs)
     model.solid            # build123d Solid, scanner mm
-    write_nurbs(model, out_dir)   # nurbs.step, nurbs.iges, faces named by region
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
-from bonecad.config import load_config
 from bonecad.contours.curves import ContourSet
-from bonecad.errors import InputError, KernelError
+from bonecad.errors import KernelError
 from bonecad.occ import brep
+from bonecad.occ.pickling import ShapePickling
 from bonecad.occ import surfaces as occ
 from bonecad.nurbs_model.loft import BoneSurfaces, RefitReport, bone_surfaces, ring_cap
+from bonecad.settings import ApexFill, NurbsSettings
 from bonecad.splines.surface import BSplineSurface
 
-ApexFill = Literal["ring", "patch"]
 APEX_FILLS: tuple[str, ...] = ("ring", "patch")
 #: face names, from the distal apex up
 FACE_NAMES = ("distal_apex_cap", "distal", "shaft", "proximal", "proximal_apex_cap")
 
 
 @dataclass(frozen=True)
-class NurbsModel:
+class NurbsModel(ShapePickling):
     """The sewn NURBS baseline in scanner coordinates (mm).
 
     surfaces : one numpy surface per face, named by region (``surface.region``); u
@@ -77,23 +75,11 @@ class NurbsModel:
 
         return Solid(self.shape)
 
-    def __getstate__(self) -> dict:
-        """Picklable (to hand the model between processes): the solid as OpenCascade's binary B-rep."""
-        state = dict(self.__dict__)
-        state["shape"], state["face_names"] = brep.pickle_named_shape(self.shape, self.face_names)
-        return state
-
-    def __setstate__(self, state: dict) -> None:
-        state = dict(state)
-        state["shape"], state["face_names"] = brep.unpickle_named_shape(state["shape"], state["face_names"])
-        for key, value in state.items():
-            object.__setattr__(self, key, value)
-
     def surface(self, region: str) -> BSplineSurface:
         for s in self.surfaces:
             if s.region == region:
                 return s
-        raise InputError(f"no face named {region!r}; faces are {[s.region for s in self.surfaces]}")
+        raise KeyError(f"no face named {region!r}; faces are {[s.region for s in self.surfaces]}")
 
     def summary(self) -> dict:
         """Figures for report.json: faces, control points, volume, refit accuracy, seams, timings."""
@@ -116,28 +102,26 @@ def _boundary_gap(a: BSplineSurface, va: float, b: BSplineSurface, vb: float, sa
     return float(np.linalg.norm(a(u, np.full_like(u, va)) - b(u, np.full_like(u, vb)), axis=1).max())
 
 
-def build_nurbs(contours: ContourSet, *, apex_fill: ApexFill | None = None, config: dict | None = None) -> NurbsModel:
+def build_nurbs(contours: ContourSet, *, settings: NurbsSettings) -> NurbsModel:
     """Loft, connect, cap and sew the contour curves into a closed NURBS solid (scanner mm).
 
     Parameters
     ----------
     contours : the three regions' curves (bone coordinates) with their frame
-    apex_fill : "ring" (ruled cone from the apex to the ring of curve ends, the
-        paper's ring of 28 lines) or "patch" (fill-hole plate surface, G1 to the
-        end surface); default ``[nurbs] apex_fill``
-    config : settings (default :func:`bonecad.load_config`)
+    settings : ``apex_fill`` "ring" (ruled cone from the apex to the ring of curve
+        ends, the paper's ring of 28 lines) or "patch" (fill-hole plate surface,
+        G1 to the end surface); the sewing tolerance (mm)
 
     Raises
     ------
-    InputError for an unknown ``apex_fill``; FitError when a region cannot be
+    ValueError for an unknown ``apex_fill``; FitError when a region cannot be
     skinned; KernelError when OpenCascade fails or the result is not one valid
     closed solid of positive volume.
     """
-    settings = (config or load_config())["nurbs"]
-    apex_fill = apex_fill or settings["apex_fill"]
+    apex_fill = settings.apex_fill
     if apex_fill not in APEX_FILLS:
-        raise InputError(f"apex_fill must be one of {APEX_FILLS}, got {apex_fill!r}")
-    tolerance = float(settings["sewing_tolerance_mm"])
+        raise ValueError(f"apex_fill must be one of {APEX_FILLS}, got {apex_fill!r}")
+    tolerance = settings.sewing_tolerance_mm
     timings: dict[str, float] = {}
 
     start = time.perf_counter()
@@ -211,13 +195,3 @@ def _caps_and_sides(bone: BoneSurfaces, apex_fill: str) -> list[BSplineSurface]:
         *sides,
         ring_cap(bone.proximal_ring, bone.proximal_apex, "proximal_apex_cap", apex_first=False),
     ]
-
-
-def write_nurbs(model: NurbsModel, out_dir: str | Path) -> dict[str, Path]:
-    """``nurbs.step`` and ``nurbs.iges`` in ``out_dir`` (mm), the solid named "nurbs", faces by region."""
-    out_dir = Path(out_dir)
-    names = list(model.face_names)
-    return {
-        "step": brep.write_named_step(model.shape, out_dir / "nurbs.step", "nurbs", names),
-        "iges": brep.write_named_iges(model.shape, out_dir / "nurbs.iges", "nurbs", names),
-    }

@@ -407,3 +407,4 @@ def unpickle_named_shape(data: bytes, names: list[str]) -> tuple[TopoDS_Shape, t
     if len(shape_faces) != len(names):
         raise KernelError(f"the binary B-rep has {len(shape_faces)} faces, not {len(names)}")
     return shape, tuple(zip(names, shape_faces))
+

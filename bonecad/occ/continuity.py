@@ -30,16 +30,9 @@ from bonecad.occ.tessellate import shape_faces
 CLASSES = ("gap", "C0", "G1", "G2")
 
 
-def _setting(key: str) -> float:
-    """An [analysis] default from bonecad/data/defaults.toml."""
-    from bonecad.config import load_config
-
-    return float(load_config()["analysis"][key])
-
-
 @dataclass(frozen=True)
 class ContinuityTolerances:
-    """Thresholds of the seam classes (defaults: [analysis] in defaults.toml); the reason for each is given.
+    """Thresholds of the seam classes (``[analysis]`` settings); the reason for each is given.
 
     gap_mm : 0.01 mm, the sewing tolerance of the NURBS baseline (defaults.toml
         [nurbs]) and 10x below the deviation bands: smaller gaps are closed.
@@ -51,10 +44,10 @@ class ContinuityTolerances:
         flat, so a jump between two nearly flat faces is not magnified.
     """
 
-    gap_mm: float = field(default_factory=lambda: _setting("continuity_gap_mm"))
-    angle_deg: float = field(default_factory=lambda: _setting("continuity_angle_deg"))
-    curvature_jump: float = field(default_factory=lambda: _setting("continuity_curvature_jump"))
-    curvature_radius_ref_mm: float = field(default_factory=lambda: _setting("continuity_curvature_radius_ref_mm"))
+    gap_mm: float
+    angle_deg: float
+    curvature_jump: float
+    curvature_radius_ref_mm: float
 
 
 @dataclass(frozen=True)
@@ -260,7 +253,7 @@ def _face_surfaces(faces, tessellation) -> tuple:
 
 
 def seam_continuity(
-    shape, *, samples: int = 21, tolerances: ContinuityTolerances | None = None, tessellation=None,
+    shape, *, tolerances: ContinuityTolerances, samples: int = 21, tessellation=None,
     face_names: list[tuple[str, object]] | None = None,
 ) -> SeamContinuity:
     """G0/G1/G2 measures along every edge of ``shape`` shared by two different faces.
@@ -282,7 +275,7 @@ def seam_continuity(
 
     from bonecad.occ.brep import names_in_order
 
-    tol = tolerances or ContinuityTolerances()
+    tol = tolerances
     if samples < 2:
         raise InputError(f"samples must be >= 2, got {samples}")
     faces = shape_faces(shape)

@@ -1,4 +1,4 @@
-"""The NURBS baseline to OpenCascade: the only module of bonecad.nurbs_model that imports OCP.
+"""The NURBS baseline's surfaces to OpenCascade faces and back.
 
 numpy surfaces -> Geom_BSplineSurface faces, and back; the fill-hole patch
 (BRepFill_Filling, G1 to its neighbour along the apex ring). Sewing, checks

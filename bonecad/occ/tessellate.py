@@ -23,15 +23,9 @@ from bonecad.mesh.closest import vertex_normals
 from bonecad.splines.evaluate import SplineSurface, SurfaceSet, project, project_faces
 
 
-def _setting(key: str):
-    from bonecad.config import load_config
-
-    return lambda: float(load_config()["analysis"][key])
-
-
 @dataclass(frozen=True)
 class TessellationSettings:
-    """Tolerances of the tessellation (mm, rad); defaults from ``[analysis]`` in defaults.toml.
+    """Tolerances of the tessellation (mm, rad); from ``[analysis]`` (``bonecad.analysis.model``).
 
     deflection_mm : chord error aimed at (``tessellation_deflection_mm``). It
         bounds distances that are not refined on the exact surface (a tiny share
@@ -51,12 +45,12 @@ class TessellationSettings:
         compact triangles.
     """
 
-    deflection_mm: float = field(default_factory=_setting("tessellation_deflection_mm"))
-    angular_deflection_rad: float = field(default_factory=_setting("tessellation_angular_deflection_rad"))
-    coverage_tolerance: float = field(default_factory=_setting("coverage_tolerance"))
-    area_rel_eps: float = field(default_factory=_setting("area_rel_eps"))
-    max_edge_mm: float = field(default_factory=_setting("tessellation_max_edge_mm"))
-    small_face_factor: float = field(default_factory=_setting("small_face_shortfall_factor"))
+    deflection_mm: float
+    angular_deflection_rad: float
+    coverage_tolerance: float
+    area_rel_eps: float
+    max_edge_mm: float
+    small_face_factor: float
 
     def allowed_shortfall(self, exact_area_mm2: np.ndarray) -> np.ndarray:
         """Relative area shortfall accepted for faces of these exact areas: the coverage
@@ -494,7 +488,7 @@ def _refined_grid(sset: SurfaceSet, grid_faces: list[int], reversed_faces: np.nd
     return uv, tri, nf, tf, area, (s, su, sv)
 
 
-def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellation:
+def tessellate(shape, settings: TessellationSettings) -> Tessellation:
     """Tessellate ``shape`` (any TopoDS_Shape with faces) and read it into numpy.
 
     Untrimmed spline faces (B-spline, Bezier: :func:`is_natural`) are
@@ -505,7 +499,6 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
     """
     from OCP.TopAbs import TopAbs_REVERSED
 
-    settings = settings or TessellationSettings()
     if settings.deflection_mm <= 0 or settings.max_edge_mm <= 0 or settings.angular_deflection_rad <= 0:
         raise InputError(
             f"deflection_mm, max_edge_mm and angular_deflection_rad must be > 0, got {settings.deflection_mm}, "

@@ -1,4 +1,4 @@
-"""T-splines to OpenCascade: the only module of bonecad.splines.tspline that imports OCP.
+"""T-splines to OpenCascade: Bezier-extracted faces, merged into B-spline faces per tensor-product block.
 
 - every Bezier element -> a Geom_BezierSurface (rational when the weights
   differ) -> a face; neighbours' boundary curves are computed from the same

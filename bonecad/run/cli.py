@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import sys
 from pathlib import Path
 
@@ -95,7 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "tspline.step/.iges/.json, curves.step/.iges/.json, frame.json, report.json, report.html "
                        "and PNG figures into --out.")
     _add_stage(p)
-    p.add_argument("--model", choices=["nurbs", "tspline", "both"], default="both", help="which models to build")
+    p.add_argument("--model", choices=["nurbs", "tspline", "both"], default=None,
+                   help="which models to build (default: both, or [pipeline] models of --config)")
     p.add_argument("--apex-fill", choices=["ring", "patch"], default=None,
                    help="NURBS apex holes: a ring of lines lofted flat, or a fill-hole patch (default from config)")
     p.add_argument("--compare-tensor-product", action="store_true", default=None,
@@ -156,43 +158,66 @@ def _print_result(result) -> None:
               f"deviation RMS {stats.rms_mm:.3f} mm, worst {max(stats.max_outside_mm, stats.max_inside_mm):.3f} mm")
 
 
+def settings_of(args: argparse.Namespace):
+    """The run's settings: the defaults, the ``--config`` file, then each flag as an override of one setting."""
+    from bonecad.settings import Settings
+
+    flags = {
+        "anatomy": {"distal_boundary_mm": getattr(args, "distal_boundary", None),
+                    "proximal_boundary_mm": getattr(args, "proximal_boundary", None)},
+        "nurbs": {"apex_fill": getattr(args, "apex_fill", None)},
+        "tspline": {"compare_tensor_product": getattr(args, "compare_tensor_product", None)},
+        "pipeline": {"models": None if getattr(args, "model", None) in (None, "both") else [args.model]},
+    }
+    if getattr(args, "model", None) == "both":
+        flags["pipeline"]["models"] = ["nurbs", "tspline"]
+    overrides = {section: {k: v for k, v in values.items() if v is not None} for section, values in flags.items()}
+    return Settings.load(args.config, overrides)
+
+
 def _run(args: argparse.Namespace) -> None:
     from bonecad.run import pipeline
-    from bonecad.config import load_config
 
-    config = load_config(args.config)
+    settings = settings_of(args)
     if args.command == "inspect":
-        summary = pipeline.inspect(args.mesh, units=args.units, config=config)
+        summary = pipeline.inspect(args.mesh, settings, units=args.units)
         if args.json:
             print(json.dumps(summary, indent=2))
         else:
             _print_inspect(summary)
     elif args.command in ("frame", "curves", "reconstruct"):
         until = {"frame": "frame", "curves": "curves", "reconstruct": "models"}[args.command]
-        models = ("nurbs", "tspline") if getattr(args, "model", "both") == "both" else (args.model,)
-        result = pipeline.reconstruct(args.input, args.out, until=until, models=models,
-                                      apex_fill=getattr(args, "apex_fill", None),
-                                      compare_tensor_product=getattr(args, "compare_tensor_product", None),
-                                      units=args.units, config=config,
-                                      distal_boundary_mm=args.distal_boundary,
-                                      proximal_boundary_mm=args.proximal_boundary)
+        result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units)
         _print_result(result)
         print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
     elif args.command == "segment":
         bone = pipeline.run_segment(args.ct, args.out)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
     elif args.command == "demo":
-        result = pipeline.run_demo(args.out, config=config)
+        result = pipeline.run_demo(args.out, settings)
         _print_result(result)
         print(f"demo outputs written to {args.out} ({result.wall_s:.1f} s)")
+
+
+class Interrupted(BaseException):
+    """SIGTERM, turned into an exception so every ``finally`` runs: children stopped, staging removed."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Interrupted(signal.Signals(signum).name)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         _run(args)
+    except (KeyboardInterrupt, Interrupted) as exc:
+        name = str(exc) or "SIGINT"
+        print(f"bonecad: interrupted ({name}); no output written", file=sys.stderr)
+        return 128 + int(getattr(signal, name, signal.SIGINT))
     except InputError as exc:
         print(f"bonecad: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -204,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bonecad: internal error: {type(exc).__name__}: {exc} (run with --verbose for the traceback)",
               file=sys.stderr)
         return EXIT_INTERNAL
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return EXIT_OK
 
 

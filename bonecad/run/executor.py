@@ -1,120 +1,258 @@
-"""Independent pipeline stages on the second core: a forked child process per job.
+"""Executors: where the runner's jobs run. The only module that starts processes.
 
-A job (a model's analysis and figures, the curves figure) needs only data that
-already exists when it starts, and OpenCascade shapes cannot be pickled, so the
-child is forked: it inherits every object as it is, writes its own files and
-sends back only its (picklable) result. Results are identical to running the
-job in the process itself; where ``fork`` is unavailable (Windows, macOS
-defaults) or switched off (``[pipeline] background_jobs = false``), the job
-runs at once, in the process itself.
+``InProcess`` runs a job at once, in this process. ``Fork`` runs each job in a
+forked child on the second core: the child inherits every object as it is
+(meshes, OpenCascade shapes, imported modules), so only its result crosses
+back, pickled. Results are identical either way.
 
-Inside a group of jobs BLAS (OpenBLAS under numpy) runs one thread per
-process: the processes already fill the two cores, and a second BLAS thread
-per process only spins against the other process (measured on TLEM2: 44 s of
-CPU and 27 s wall with two BLAS threads, 30 s and 20.5 s with one). It is one
-thread with background jobs off too, so both ways give the same numbers (BLAS
-sums in another order with more threads, and a fit to noisy MRI data can
-refine differently on a last-digit difference).
+A ``Fork`` executor owns its children for its whole ``with`` block:
+
+- a job that fails sends its error back and interrupts this process at once
+  (SIGUSR1, repeated until this process stops it), whatever it is doing, so
+  one failing job ends the run within seconds instead of when its result is
+  asked for;
+- leaving the block (normally, by an error, or by SIGINT/SIGTERM turned into
+  exceptions by the CLI) stops every child still running (SIGTERM, then
+  SIGKILL after a grace period) and waits for it;
+- a child dies with this process even when this process is killed (SIGKILL):
+  Linux's parent-death signal.
+
+Inside the block BLAS (OpenBLAS under numpy) runs one thread per process: the
+processes already fill the two cores, and a second BLAS thread per process
+only spins against the other (measured on TLEM2: 44 s of CPU and 27 s wall
+with two BLAS threads, 30 s and 20.5 s with one). It is one thread in process
+too, so both ways give the same numbers (BLAS sums in another order with more
+threads, and a fit to noisy MRI data can refine differently on a last-digit
+difference).
 """
 from __future__ import annotations
 
+import ctypes
+import logging
 import multiprocessing
+import os
 import pickle
+import signal
+import threading
 import time
 import traceback
-from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from contextlib import ExitStack
+from multiprocessing.connection import Connection, wait
+from typing import Any, Callable, Protocol
+
+log = logging.getLogger(__name__)
+
+#: seconds a child is given to end after SIGTERM before it is killed
+_GRACE_S = 2.0
+_PR_SET_PDEATHSIG = 1
+#: seconds between a failed child's signals to its parent
+_NUDGE_S = 0.2
 
 
-class Job:
-    """A started job; ``result()`` waits for it and returns (value, seconds it took)."""
+class Job(Protocol):
+    """A submitted job."""
 
-    def __init__(self, fn: Callable[..., Any], args: tuple, kwargs: dict, background: bool):
-        self._name = getattr(fn, "__name__", "job")
-        self._process = None
-        if not background:
-            start = time.perf_counter()
+    name: str
+
+    def result(self) -> Any:
+        """The job's return value (waiting for it), or its exception raised here."""
+
+
+class Executor(Protocol):
+    """Runs jobs; a context manager that owns them until it is left."""
+
+    def __enter__(self) -> Executor: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+    def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Job: ...
+
+
+class _Done:
+    """A job run in process: its value or its exception."""
+
+    def __init__(self, fn: Callable[..., Any], args: tuple, kwargs: dict):
+        self.name = getattr(fn, "__name__", "job")
+        self._value: Any = None
+        self._error: BaseException | None = None
+        try:
             self._value = fn(*args, **kwargs)
-            self._seconds = time.perf_counter() - start
-            return
-        ctx = multiprocessing.get_context("fork")
+        except Exception as exc:  # raised when the result is asked for, as from a child
+            self._error = exc
+
+    def result(self) -> Any:
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+class InProcess:
+    """Runs every job at once, in this process (no children; under Dask, in a thread, without fork)."""
+
+    def __enter__(self) -> InProcess:
+        from threadpoolctl import threadpool_limits
+
+        self._limits = threadpool_limits(limits=1, user_api="blas")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._limits.unregister()
+
+    def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> _Done:
+        return _Done(fn, args, kwargs)
+
+
+class ChildFailed(Exception):
+    """Raised in the parent (by SIGUSR1) when a child job has failed; the executor replaces it by
+    the child's own error when it is left."""
+
+    def __init__(self) -> None:
+        super().__init__("a background job failed")
+
+
+class _Child:
+    """A job in a forked child; ``result()`` waits for it."""
+
+    def __init__(self, owner: Fork, ctx: Any, fn: Callable[..., Any], args: tuple, kwargs: dict):
+        self.name = getattr(fn, "__name__", "job")
+        self._owner = owner
         self._receive, send = ctx.Pipe(duplex=False)
-        # not a daemon: a job may start jobs of its own (the frame-and-curves job fits the
-        # proximal curves beside the distal ones); ``jobs`` stops every child it started
-        self._process = ctx.Process(target=_run, args=(send, fn, args, kwargs), daemon=False)
+        self._process = ctx.Process(target=_child_main, args=(send, os.getpid(), fn, args, kwargs), daemon=True)
         self._process.start()
         send.close()
+        self._message: tuple[bool, Any] | None = None
 
-    def terminate(self) -> None:
-        """Stop the child if it is still running (its result is not wanted any more)."""
-        if self._process is not None:
+    def _take(self, wait: bool) -> tuple[bool, Any] | None:
+        """The child's message (None when ``wait`` is False and it has sent none yet)."""
+        if self._message is None:
+            if not wait and not self._receive.poll():
+                return None
+            try:
+                self._message = self._receive.recv()
+            except EOFError:
+                self._process.join()
+                self._message = (False, RuntimeError(
+                    f"background job {self.name} died (exit code {self._process.exitcode})"))
+            if self._message[0]:  # done; a failed child signals its parent until it is stopped
+                self._process.join()
+        return self._message
+
+    def result(self) -> Any:
+        return self._owner.wait_for(self)
+
+    def failure(self) -> BaseException | None:
+        """The child's error if it has reported one (without waiting)."""
+        message = self._take(wait=False) if self._process.exitcode is not None or self._receive.poll() else None
+        return None if message is None or message[0] else message[1]
+
+    def stop(self) -> None:
+        """End the child if it still runs: SIGTERM, then SIGKILL after the grace period."""
+        if self._process.is_alive():
             self._process.terminate()
-            self._process.join()
-            self._receive.close()
-            self._process = None
-
-    def result(self) -> tuple[Any, float]:
-        if self._process is None:
-            return self._value, self._seconds
-        try:
-            ok, value, seconds = self._receive.recv()
-        except EOFError:
-            self._process.join()
-            raise RuntimeError(f"background job {self._name} died (exit code {self._process.exitcode})") from None
-        finally:
-            self._receive.close()
-        self._process.join()
-        self._process = None
-        if not ok:
-            raise value
-        self._value, self._seconds = value, seconds
-        return value, seconds
+            self._process.join(_GRACE_S)
+            if self._process.is_alive():
+                self._process.kill()
+                self._process.join()
+        self._receive.close()
 
 
-def _run(send, fn, args, kwargs) -> None:
-    start = time.perf_counter()
+def _child_main(send: Connection, parent: int, fn: Callable[..., Any], args: tuple, kwargs: dict) -> None:
+    """A child's life: die with the parent, run the job, send (ok, value), and on failure interrupt the parent."""
     try:
-        message = (True, fn(*args, **kwargs), time.perf_counter() - start)
-    except BaseException as exc:  # sent back and raised in the parent
-        message = (False, exc, time.perf_counter() - start)
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):  # not Linux: the parent's exit handling still stops it
+        pass
+    if os.getppid() != parent:  # the parent died before the signal was armed
+        os._exit(1)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C reaches the parent, which stops its children
+    signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    try:
+        message: tuple[bool, Any] = (True, fn(*args, **kwargs))
+    except Exception as exc:
+        message = (False, exc)
     try:
         send.send(message)
-    except (pickle.PicklingError, TypeError, AttributeError):
-        text = "".join(traceback.format_exception(message[1])) if not message[0] else "unpicklable result"
-        send.send((False, RuntimeError(f"background job {fn.__name__}: {text}"), message[2]))
+    except (pickle.PicklingError, TypeError, AttributeError) as exc:
+        text = "".join(traceback.format_exception(message[1])) if not message[0] else f"unpicklable result ({exc})"
+        message = (False, RuntimeError(f"background job {getattr(fn, '__name__', 'job')}: {text}"))
+        send.send(message)
     send.close()
+    while not message[0]:  # nudge the parent until it stops this child (a nudge can land where Python
+        os.kill(parent, signal.SIGUSR1)  # ignores exceptions, e.g. in fork's after-fork hooks)
+        time.sleep(_NUDGE_S)
 
 
-def can_fork() -> bool:
-    return "fork" in multiprocessing.get_all_start_methods()
+class Fork:
+    """Runs each job in a forked child (see the module docstring). Needs ``fork`` and the main thread."""
 
+    def __init__(self) -> None:
+        self._ctx = multiprocessing.get_context("fork")
+        self._children: list[_Child] = []
+        self._stack = ExitStack()
+        self._open = False
+        self._waiting = False
 
-class JobGroup:
-    """Jobs started together; see ``jobs``."""
+    @staticmethod
+    def available() -> bool:
+        return ("fork" in multiprocessing.get_all_start_methods()
+                and threading.current_thread() is threading.main_thread()
+                and not multiprocessing.current_process().daemon)
 
-    def __init__(self, background: bool):
-        self.background = background and can_fork()
-        self._jobs: list[Job] = []
+    def __enter__(self) -> Fork:
+        from threadpoolctl import threadpool_limits
 
-    def start(self, fn: Callable[..., Any], *args, **kwargs) -> Job:
-        """Start ``fn(*args, **kwargs)`` in a forked child (or, without background jobs, run it now)."""
-        job = Job(fn, args, kwargs, self.background)
-        self._jobs.append(job)
-        return job
+        self._stack.enter_context(threadpool_limits(limits=1, user_api="blas"))
+        previous = signal.signal(signal.SIGUSR1, self._on_child_failure)
+        self._stack.callback(signal.signal, signal.SIGUSR1, previous)
+        self._open = True
+        return self
 
+    def _on_child_failure(self, signum: int, frame: object) -> None:
+        if self._open and not self._waiting:  # while waiting, the failure is read from its pipe
+            raise ChildFailed
 
-@contextmanager
-def jobs(background: bool = True) -> Iterator[JobGroup]:
-    """A group of jobs whose children are stopped when the block ends before their results are taken
-    (an error in the parent: no child goes on writing into an output folder that is being removed).
-
-    BLAS runs single-threaded inside the block (children inherit it)."""
-    from threadpoolctl import threadpool_limits
-
-    group = JobGroup(background)
-    with threadpool_limits(limits=1, user_api="blas"):
+    def wait_for(self, child: _Child) -> Any:
+        """``child``'s result; if another child reports a failure first, that failure is raised."""
+        self._waiting = True
         try:
-            yield group
+            while child._message is None:
+                pending = [c for c in self._children if c._message is None]
+                ready = set(wait([c._receive for c in pending]))
+                for c in pending:
+                    if c._receive in ready:
+                        ok, value = c._take(wait=True)  # type: ignore[misc]
+                        if not ok and c is not child:
+                            raise value
         finally:
-            for job in group._jobs:
-                job.terminate()
+            self._waiting = False
+        ok, value = child._message
+        if not ok:
+            raise value
+        return value
+
+    def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> _Child:
+        child = _Child(self, self._ctx, fn, args, kwargs)
+        self._children.append(child)
+        log.debug("job %s started in process %d", child.name, child._process.pid)
+        return child
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None:
+        self._open = False
+        failed = None
+        if exc_type is ChildFailed:
+            failed = next((e for e in (c.failure() for c in self._children) if e is not None), None)
+        started = time.perf_counter()
+        for child in self._children:
+            child.stop()
+        self._children.clear()
+        # a failure signal still in flight is ignored from here on (the handler sees _open False)
+        self._stack.close()
+        log.debug("children stopped in %.2f s", time.perf_counter() - started)
+        if exc_type is ChildFailed:
+            raise failed or RuntimeError("a background job failed without saying why") from None
+
+
+def executor_for(background: bool) -> Executor:
+    """``Fork`` when background jobs are wanted and possible, else ``InProcess``."""
+    return Fork() if background and Fork.available() else InProcess()

@@ -1,49 +1,62 @@
-"""Runs the stages in order, times them and writes their outputs.
+"""The runner: schedules the stages on an executor, renders the figures and exports the files.
 
 input (CT volume | mesh) -> BoneMesh -> AnatomicalFrame -> ContourSet
-    -> NurbsModel, TSplineModel -> Analysis -> exports + report
+    -> NurbsModel, TSplineModel -> ModelReport -> exports + report
 
-Every command of the CLI is one function here, writing through
-``staged_output`` so a failure leaves no partial files in the output folder.
+Stages are pure functions of their inputs and settings; this module alone
+decides what runs where. With background jobs (``[pipeline] background_jobs``,
+``bonecad.run.executor.Fork``) the second core takes, in turn: the frame
+(while this process imports OpenCascade and matplotlib once, for every later
+child to inherit), the proximal contour curves and the mesh's local noise
+(while the distal and shaft curves are fitted here), the curve files and the
+whole NURBS branch (model, analysis, figures, files) while the T-spline model
+is built here, and the T-spline model's zebra figure, continuity and colour
+map while its deviation is measured here. Every file goes through
+``staged_output``: a failure, SIGINT or SIGTERM leaves no partial output.
 """
 from __future__ import annotations
 
 import importlib
-import json
 import logging
 import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Literal, Mapping
 
 import numpy as np
 
+from bonecad.analysis.model import ModelReport, model_continuity, model_deviation, tessellate_model
 from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
-from bonecad.run import executor as parallel
-from bonecad.config import load_config
-from bonecad.contours.curves import ContourSet, bone_coordinates, contour_curves
-from bonecad.occ.exchange import frame_entities, write_iges, write_step
-from bonecad.staging import staged_output
+from bonecad.contours.curves import ContourSet, assemble_contours, bone_coordinates, end_curves, shaft_curves
 from bonecad.errors import InputError
+from bonecad.export import export
+from bonecad.export.documents import FrameDocument
+from bonecad.export.report import ReportDocument
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
+from bonecad.run.executor import Executor, InProcess, executor_for
+from bonecad.settings import Settings
+from bonecad.staging import staged_file, staged_output
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
+
+Until = Literal["frame", "curves", "models"]
+STAGES: tuple[Until, ...] = ("frame", "curves", "models")
+MODELS = ("nurbs", "tspline")
 
 
-class Timings(dict):
-    """Stage name -> seconds, filled by the ``stage`` context manager.
+class Timings:
+    """Stage name -> seconds, kept by the runner (not in the stages' results).
 
-    Stages run on the second core (``bonecad.run.executor``) overlap the others, so
-    the stage times do not add up to the run's time: ``wall_s`` is that, from
-    the creation of the object.
+    Stages on the second core overlap the others, so the stage times do not
+    add up to the run's wall time (``wall_s``, from the creation of the object).
     """
 
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
+    def __init__(self) -> None:
         self.started = time.perf_counter()
+        self.seconds: dict[str, float] = {}
 
     def wall_s(self) -> float:
         return round(time.perf_counter() - self.started, 3)
@@ -53,33 +66,36 @@ class Timings(dict):
         log.info("%s ...", name)
         start = time.perf_counter()
         yield
-        self[name] = round(time.perf_counter() - start, 3)
-        log.info("%s done in %.2f s", name, self[name])
+        self.seconds[name] = round(time.perf_counter() - start, 3)
+        log.info("%s done in %.2f s", name, self.seconds[name])
+
+    def update(self, other: Mapping[str, float]) -> None:
+        self.seconds.update(other)
 
 
-def write_json(data: dict, path: Path) -> None:
-    path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+@dataclass(frozen=True)
+class Reconstruction:
+    """Everything one run produced: the stages' results, the per-model analysis, timings and files.
 
+    ``models`` maps "nurbs"/"tspline" to the model objects; ``reports`` to their
+    analysis (deviation, continuity, figures); ``files`` names the outputs in ``out_dir``.
+    """
 
-def mesh_summary(bone: BoneMesh) -> dict:
-    """Input summary for reports: file, units, bodies, repairs."""
-    return {
-        "file": bone.source,
-        "units": bone.units,
-        "triangles": bone.triangle_count,
-        "watertight": bone.watertight,
-        "bodies": [
-            {
-                "role": b.role,
-                "triangles": b.triangles,
-                "volume_mm3": round(b.volume_mm3, 1),
-                "length_mm": round(b.length_mm, 1),
-                "centroid": np.round(b.centroid, 3).tolist(),
-            }
-            for b in bone.bodies
-        ],
-        "repairs": list(bone.repairs),
-    }
+    bone: BoneMesh
+    frame: AnatomicalFrame
+    contours: ContourSet | None = None
+    models: Mapping[str, object] = field(default_factory=dict)
+    reports: Mapping[str, ModelReport] = field(default_factory=dict)
+    timings_s: Mapping[str, float] = field(default_factory=dict)
+    out_dir: Path | None = None
+    files: tuple[str, ...] = ()
+    wall_s: float | None = None  # the whole run (stage times on the second core overlap)
+
+    def figure(self, name: str) -> Path:
+        """Path of an output figure, e.g. ``figure("nurbs_zebra.png")``."""
+        if self.out_dir is None or name not in self.files:
+            raise KeyError(f"no figure {name!r}; this run wrote {list(self.files)}")
+        return self.out_dir / name
 
 
 VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".ima")
@@ -102,15 +118,15 @@ def segment_ct(path: str | Path) -> BoneMesh:
     return segment_bone(volume)
 
 
-def load_input(path: str | Path, *, units: Units = "auto", config: dict | None = None) -> BoneMesh:
+def load_input(path: str | Path, settings: Settings, *, units: Units = "auto") -> BoneMesh:
     """The tibia mesh of an input: read a mesh file, or segment a CT volume."""
-    return segment_ct(path) if is_volume(path) else load_bone(path, units=units, config=config)
+    if is_volume(path):
+        return segment_ct(path)
+    return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
 
 
 def run_segment(path: str | Path, out_mesh: str | Path) -> BoneMesh:
     """``bonecad segment``: the tibia's surface from a CT volume, written as a mesh file (STL, PLY, OBJ, OFF)."""
-    from bonecad.staging import staged_file
-
     out_mesh = Path(out_mesh)
     if out_mesh.suffix.lower() not in (".stl", ".ply", ".obj", ".off"):
         raise InputError(f"unsupported mesh format '{out_mesh.suffix}' (use .stl, .ply, .obj or .off)", out_mesh)
@@ -120,275 +136,191 @@ def run_segment(path: str | Path, out_mesh: str | Path) -> BoneMesh:
     return bone
 
 
-def inspect(path: str | Path, *, units: Units = "auto", config: dict | None = None) -> dict:
+def inspect(path: str | Path, settings: Settings, *, units: Units = "auto") -> dict:
     """What ``bonecad inspect`` prints: the input summary, the tibia's side and frame figures."""
-    config = config or load_config()
-    bone = load_bone(path, units=units, config=config)
-    frame = anatomical_frame(bone, config=config)
-    summary = mesh_summary(bone)
+    bone = load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
+    frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+    summary = bone.summary()
     summary["side"] = frame.side
     summary["mechanical_axis_length_mm"] = round(frame.mechanical_length_mm, 2)
     summary["plateau_semi_axes_mm"] = np.round(frame.plateau.semi_axes_mm, 2).tolist()
     return summary
 
 
-def curve_shapes(contours: ContourSet) -> list:
-    """(name, edge) of every contour curve, mapped back to scanner coordinates (exact: affine map of poles)."""
-    from bonecad.occ.curves import to_edge
-
-    frame = contours.frame
-    return [(c.name, to_edge(c.curve.transformed(frame.axes, frame.origin), c.name)) for c in contours.all_curves()]
-
-
-def contours_dict(contours: ContourSet) -> dict:
-    """curves.json: per curve its poles and knots (scanner mm), achieved deviation, tolerance, repairs."""
-    frame = contours.frame
-    curves = []
-    for c in contours.all_curves():
-        scanner = c.curve.transformed(frame.axes, frame.origin)
-        curves.append({
-            "name": c.name,
-            "region": c.region,
-            "index": c.index,
-            "angle_deg": c.angle_deg,
-            "level_mm": None if c.level_mm is None else round(c.level_mm, 4),
-            "degree": c.curve.degree,
-            "periodic": c.curve.periodic,
-            "control_points": np.round(scanner.control_points, 6).tolist(),
-            "knots": np.round(scanner.knots, 12).tolist(),
-            "tolerance_mm": c.tolerance_mm,
-            "max_deviation_mm": round(c.max_deviation_mm, 5),
-            "rms_deviation_mm": round(c.rms_deviation_mm, 5),
-            "within_tolerance": c.within_tolerance,
-            "exceeds_tolerance_by_mm": round(max(0.0, c.max_deviation_mm - c.tolerance_mm), 5),
-            "repairs": list(c.repairs),
-        })
-    return {
-        "coordinates": "input (scanner) coordinates, mm",
-        "regions": contours.summary(),
-        "shaft_loft_error_p99_mm": round(contours.shaft_fit_error_mm, 4),
-        "notes": list(contours.notes),
-        "curves": curves,
-    }
-
-
-def write_curves(contours: ContourSet, bone: BoneMesh, out_dir: Path) -> None:
-    """curves.step and curves.iges (the contour curves and the reference entities, scanner mm) and curves.png."""
-    from bonecad.render.curves import curves_png
-
-    frame = contours.frame
-    tree = ("bonecad_curves", [("contour_curves", curve_shapes(contours)),
-                               ("reference_entities", frame_entities(frame))])
-    write_step(tree, out_dir / "curves.step")
-    write_iges(tree, out_dir / "curves.iges")
-    vertices, faces = bone_coordinates(bone, frame)
-    curves_png(out_dir / "curves.png", vertices, faces, contours)
-
-
-STAGES = ("frame", "curves", "models")
-MODELS = ("nurbs", "tspline")
-
-
-@dataclass
-class Reconstruction:
-    """Everything one run produced: the stages' results, the per-model analysis, timings and files.
-
-    ``models`` maps "nurbs"/"tspline" to the model objects; ``reports`` to their
-    analysis (deviation, continuity, figures); ``files`` names the outputs in ``out_dir``.
-    """
-
-    bone: BoneMesh
-    frame: AnatomicalFrame
-    contours: ContourSet | None = None
-    models: dict = field(default_factory=dict)
-    reports: dict = field(default_factory=dict)
-    timings_s: dict = field(default_factory=dict)
-    out_dir: Path | None = None
-    files: list[str] = field(default_factory=list)
-    wall_s: float | None = None  # the whole run (stage times on the second core overlap)
-
-    def figure(self, name: str) -> Path:
-        """Path of an output figure, e.g. ``figure("nurbs_zebra.png")``."""
-        if self.out_dir is None or name not in self.files:
-            raise InputError(f"no figure {name!r}; this run wrote {self.files}")
-        return self.out_dir / name
-
-
 def reconstruct_bone(
     bone: BoneMesh,
     out_dir: str | Path,
+    settings: Settings,
     *,
-    until: str = "models",
-    models: tuple[str, ...] = MODELS,
-    apex_fill: str | None = None,
-    compare_tensor_product: bool | None = None,
-    config: dict | None = None,
-    distal_boundary_mm: float | None = None,
-    proximal_boundary_mm: float | None = None,
+    until: Until = "models",
     timings: Timings | None = None,
+    executor: Executor | None = None,
 ) -> Reconstruction:
     """Run the stages from the frame up to ``until`` and write their files into ``out_dir``.
 
     frame: frame.json and curves.step (the reference entities);
     curves: also the contour curves in curves.step, curves.iges, curves.json and curves.png;
-    models: also each model's STEP/IGES (nurbs.*, tspline.*), its analysis figures,
-    report.json and report.html.
+    models: also each model of ``settings.pipeline.models`` (nurbs.*, tspline.*), its
+    analysis figures, report.json and report.html.
+    executor : where background jobs run (default: forked children when
+    ``settings.pipeline.background_jobs`` and fork is possible, else in process).
     """
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got {until!r}")
-    unknown = set(models) - set(MODELS)
-    if unknown or not models:
-        raise InputError(f"models must be among {MODELS}, got {list(models)}")
-    config = config or load_config()
-    background = bool(config["pipeline"]["background_jobs"])
+    models = settings.pipeline.models if until == "models" else ()
+    if until == "models" and not models:
+        raise InputError("no model to build: [pipeline] models is empty")
     timings = timings if timings is not None else Timings()
+    ex = executor if executor is not None else executor_for(settings.pipeline.background_jobs)
     out_dir = Path(out_dir)
-    with staged_output(out_dir) as stage_dir, parallel.jobs(background) as jobs:
-        boundaries = {"distal_boundary_mm": distal_boundary_mm, "proximal_boundary_mm": proximal_boundary_mm}
-        if until == "frame":
-            with timings.stage("anatomical frame"):
-                frame = anatomical_frame(bone, config=config, **boundaries)
-            with timings.stage("reference entities to STEP"):
-                write_step(("reference_entities", frame_entities(frame)), stage_dir / "curves.step")
-            result = Reconstruction(bone=bone, frame=frame, timings_s=timings, out_dir=out_dir)
-        else:
-            # the frame and the curves on the second core while this process imports, once, what the
-            # models need (the children forked later inherit it instead of importing it again)
-            front = jobs.start(_frame_and_curves, bone, config, jobs, **boundaries)
+    with staged_output(out_dir) as stage_dir, ex:
+        frame_job = ex.submit(anatomical_frame, bone, settings=settings.anatomy, plausible=settings.units)
+        if until != "frame":
             with timings.stage("OpenCascade and matplotlib imports"):
-                importlib.import_module("bonecad.occ.brep")
-                importlib.import_module("bonecad.render.figures")
-            frame, contours, front_timings = front.result()[0]
-            timings.update(front_timings)
-            result = Reconstruction(bone=bone, frame=frame, contours=contours, timings_s=timings, out_dir=out_dir)
-            # the second core: curves.step/.iges/.png, then the NURBS model, its files and analysis
-            side = jobs.start(_curve_files_and_nurbs, result.contours, bone, stage_dir,
-                              nurbs=until == "models" and "nurbs" in models, apex_fill=apex_fill, config=config)
-            write_json(contours_dict(result.contours), stage_dir / "curves.json")
-            for name, summary in result.contours.summary().items():
-                log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name,
-                         summary["curves"], summary["worst_max_deviation_mm"], summary["tolerance_mm"],
-                         summary["within_tolerance"])
-            if until == "models":
-                _build_models(result, stage_dir, models, compare_tensor_product, config, timings, jobs, side)
-            else:
-                timings.update(side.result()[0]["timings"])
+                for module in ("bonecad.occ.brep", "bonecad.render.figures", "bonecad.export.cad"):
+                    importlib.import_module(module)
+        with timings.stage("anatomical frame"):
+            frame = frame_job.result()
+        frame_doc = FrameDocument(bone.summary(), frame)
+        if until == "frame":
+            with timings.stage("reference entities to STEP"):
+                export("frame", frame_doc, stage_dir, only=["step"])
+            result = Reconstruction(bone=bone, frame=frame)
+        else:
+            result = _curves_and_models(bone, frame, stage_dir, settings, models, timings, ex)
         # no timings (report.json and the log have them): the same input gives the same frame.json
-        write_json({"input": mesh_summary(bone), **frame.as_dict()}, stage_dir / "frame.json")
-        result.files = sorted(p.name for p in stage_dir.iterdir())
-    result.timings_s = dict(timings)
-    result.wall_s = timings.wall_s()
-    return result
+        export("frame", frame_doc, stage_dir, only=["json"])
+        files = tuple(sorted(p.name for p in stage_dir.iterdir()))
+    return replace(result, out_dir=out_dir, files=files, timings_s=dict(timings.seconds), wall_s=timings.wall_s())
 
 
-def _frame_and_curves(bone: BoneMesh, config: dict, jobs: parallel.JobGroup, *, distal_boundary_mm: float | None,
-                      proximal_boundary_mm: float | None) -> tuple[AnatomicalFrame, ContourSet, dict]:
-    """The anatomical frame and the contour curves, with their stage times (picklable: a background job)."""
-    timings = Timings()
-    with timings.stage("anatomical frame"):
-        frame = anatomical_frame(bone, config=config, distal_boundary_mm=distal_boundary_mm,
-                                 proximal_boundary_mm=proximal_boundary_mm)
+def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, stage_dir: Path, settings: Settings,
+                       models: tuple[str, ...], timings: Timings, ex: Executor) -> Reconstruction:
+    """Contour curves, their files, then the models with their analysis, figures and files, and the report."""
     with timings.stage("contour curves"):
-        contours = contour_curves(bone, frame, config=config, jobs=jobs)
-    return frame, contours, dict(timings)
-
-
-def _curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path, *, nurbs: bool, apex_fill,
-                           config: dict) -> dict:
-    """curves.step, curves.iges, curves.png, then (``nurbs``) the NURBS model, its files and its analysis.
-
-    Returns {"timings": {stage: s}, "model": NurbsModel, "report": ModelReport} (picklable: it runs as
-    a background job).
-    """
-    timings = Timings()
-    with timings.stage("curves to STEP, IGES and PNG"):
-        write_curves(contours, bone, stage_dir)
-    out: dict = {"timings": timings}
-    if nurbs:
-        from bonecad.analysis.model import analyse_model
-        from bonecad.nurbs_model.model import build_nurbs, write_nurbs
-
-        with timings.stage("NURBS model"):
-            model = build_nurbs(contours, apex_fill=apex_fill, config=config)
-            write_nurbs(model, stage_dir)
-        with timings.stage("NURBS analysis"):
-            out["report"] = analyse_model("nurbs", model.shape, bone, contours.frame, stage_dir,
-                                          info=model.summary(), face_names=list(model.face_names))
-        out["model"] = model
-    return out
-
-
-def _build_models(
-    result: Reconstruction, stage_dir: Path, models, compare_tensor_product, config, timings: Timings,
-    jobs: parallel.JobGroup, side: parallel.Job,
-) -> None:
-    """The T-spline model, its exports and analysis, beside the ``side`` job (curve files and the
-    NURBS model, on the second core: ``bonecad.run.executor``), then report.json/report.html.
-
-    The T-spline model's zebra figure and continuity are made on the second core
-    while its deviation is measured. Stage times of the side job are its own.
-    """
-    from bonecad.analysis.model import analyse_model
-    from bonecad.export.report import write_report
-
-    bone, frame, contours = result.bone, result.frame, result.contours
+        proximal = ex.submit(end_curves, bone, frame, "proximal", settings=settings.curves)
+        noise = ex.submit(mesh_noise, bone, frame, settings) if "tspline" in models else None
+        distal = end_curves(bone, frame, "distal", settings=settings.curves)
+        shaft = shaft_curves(bone, frame, settings=settings.curves)
+        contours = assemble_contours(frame, distal, shaft, proximal.result())
+    for name, summary in contours.summary().items():
+        log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name, summary["curves"],
+                 summary["worst_max_deviation_mm"], summary["tolerance_mm"], summary["within_tolerance"])
+    # the second core: curves.step/.iges/.png, then the NURBS model, its analysis, figures and files
+    side = ex.submit(curve_files_and_nurbs, contours, bone, stage_dir, settings, "nurbs" in models)
+    export("curves", contours, stage_dir, only=["json"])
+    built: dict[str, object] = {}
+    reports: dict[str, ModelReport] = {}
     if "tspline" in models:
-        from bonecad.tspline_model.model import build_tspline_model, write_tspline
+        from bonecad.tspline_model.model import build_tspline_model
 
         with timings.stage("T-spline model"):
-            tspline = build_tspline_model(bone, frame, contours, config=config,
-                                          compare_tensor_product=compare_tensor_product, jobs=jobs)
-            write_tspline(tspline, stage_dir)
-        result.models["tspline"] = tspline
+            model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
+                                        apex_hole_radius_mm=settings.curves.apex_hole_radius_mm,
+                                        noise_mm=None if noise is None else noise.result())
+        with timings.stage("T-spline files"):
+            export("tspline", model, stage_dir)
         with timings.stage("T-spline analysis"):
-            result.reports["tspline"] = analyse_model(
-                "tspline", tspline.shape, bone, frame, stage_dir,
-                info={"faces": len(tspline.face_names), **tspline.summary()},
-                face_names=list(tspline.face_names), jobs=jobs,
-            )
+            reports["tspline"] = analyse(
+                "tspline", model, bone, frame, stage_dir, settings,
+                {"faces": len(model.face_names), **model.summary()}, ex)
+        built["tspline"] = model
     with timings.stage("waiting for the second core"):
-        done = side.result()[0]
-    timings.update(done["timings"])
-    if "nurbs" in models:
-        result.models["nurbs"], result.reports["nurbs"] = done["model"], done["report"]
-    with timings.stage("report"):
-        write_report(
-            stage_dir,
-            input_summary={**mesh_summary(bone), "side": frame.side},
-            frame=frame.as_dict(),
-            models=[result.reports[m] for m in MODELS if m in result.reports],
-            timings_s={**timings, "total (wall)": timings.wall_s()},
-        )
+        side_timings, nurbs = side.result()
+    timings.update(side_timings)
+    if nurbs is not None:
+        built["nurbs"], reports["nurbs"] = nurbs
+    if models:
+        with timings.stage("report"):
+            doc = ReportDocument(input_summary={**bone.summary(), "side": frame.side}, frame=frame.as_dict(),
+                                 models=tuple(reports[m] for m in MODELS if m in reports),
+                                 timings_s={**timings.seconds, "total (wall)": timings.wall_s()})
+            export("report", doc, stage_dir)
+    return Reconstruction(bone=bone, frame=frame, contours=contours,
+                          models={m: built[m] for m in MODELS if m in built},
+                          reports={m: reports[m] for m in MODELS if m in reports})
+
+
+def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: Settings) -> np.ndarray:
+    """The mesh's local noise at the T-spline fit's points (mm)."""
+    from bonecad.tspline_model.model import mesh_noise_mm
+
+    return mesh_noise_mm(bone, frame, settings.tspline)
+
+
+def curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path, settings: Settings,
+                          nurbs: bool) -> tuple[dict[str, float], tuple[object, ModelReport] | None]:
+    """curves.step, curves.iges, curves.png, then (``nurbs``) the NURBS model, its files, analysis and
+    figures, all in this process. Returns (stage timings, (model, report) or None)."""
+    from bonecad.nurbs_model.model import build_nurbs
+    from bonecad.render.curves import curves_png
+
+    timings = Timings()
+    with timings.stage("curves to STEP, IGES and PNG"):
+        export("curves", contours, stage_dir, only=["step", "iges"])
+        curves_png(stage_dir / "curves.png", *bone_coordinates(bone, contours.frame), contours)
+    if not nurbs:
+        return timings.seconds, None
+    with timings.stage("NURBS model"):
+        model = build_nurbs(contours, settings=settings.nurbs)
+        export("nurbs", model, stage_dir)
+    with timings.stage("NURBS analysis"):
+        report = analyse("nurbs", model, bone, contours.frame, stage_dir, settings, model.summary(), InProcess())
+    return timings.seconds, (model, report)
+
+
+def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: Path, settings: Settings,
+            info: dict, ex: Executor) -> ModelReport:
+    """Deviation, continuity and the figures ``{name}_deviation.png``, ``{name}_histogram.png`` and
+    ``{name}_zebra.png`` of one model; zebra and continuity, and the colour map, as background jobs."""
+    from bonecad.render.figures import deviation_map_png, histogram_png
+
+    view_frame = frame.axes.T  # columns: lateral, anterior, proximal
+    tess = tessellate_model(model.shape, settings.analysis)
+    side = ex.submit(zebra_and_continuity, name, model, tess, out_dir, view_frame, settings)
+    deviation = model_deviation(model.shape, tess, bone, frame, settings.analysis)
+    colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", bone.vertices, bone.faces,
+                           deviation.vertex_deviation_mm, view_frame,
+                           title=f"{name}: deviation of the mesh from the CAD model, mm")
+    histogram = histogram_png(
+        out_dir / f"{name}_histogram.png",
+        {"whole bone": deviation.mesh_to_cad.histogram, **deviation.mesh_to_cad.region_histograms},
+        title=f"{name}: share of surface per deviation band",
+    )
+    zebra, (continuity, knots) = side.result()
+    figures = {"deviation": colour_map.result(), "histogram": histogram, "zebra": zebra}
+    return ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots, figures=figures)
+
+
+def zebra_and_continuity(name: str, model, tess, out_dir: Path, view_frame: np.ndarray, settings: Settings):
+    """The zebra figure, and the seam and knot continuity, of a tessellated model."""
+    from bonecad.render.figures import zebra_png
+
+    zebra = zebra_png(out_dir / f"{name}_zebra.png", tess, view_frame, title=f"{name}: zebra (reflection lines)")
+    return zebra, model_continuity(model.shape, tess, list(model.face_names), settings.analysis)
 
 
 def reconstruct(
     source: str | Path,
     out_dir: str | Path | None = None,
+    settings: Settings | None = None,
     *,
-    until: str = "models",
-    models: tuple[str, ...] = MODELS,
-    apex_fill: str | None = None,
-    compare_tensor_product: bool | None = None,
+    until: Until = "models",
     units: Units = "auto",
-    config: dict | None = None,
-    distal_boundary_mm: float | None = None,
-    proximal_boundary_mm: float | None = None,
+    executor: Executor | None = None,
 ) -> Reconstruction:
-    """The whole pipeline on a mesh file or CT volume; outputs in ``out_dir`` (a new temporary folder if None)."""
-    config = config or load_config()
+    """The whole pipeline on a mesh file or CT volume; outputs in ``out_dir`` (a new temporary folder if
+    None); ``settings`` default to the shipped ones (``Settings.load()``)."""
+    settings = settings if settings is not None else Settings.load()
     timings = Timings()
     if out_dir is None:
         out_dir = Path(tempfile.mkdtemp(prefix="bonecad-"))
     with timings.stage("input"):
-        bone = load_input(source, units=units, config=config)
-    return reconstruct_bone(
-        bone, out_dir, until=until, models=models, apex_fill=apex_fill,
-        compare_tensor_product=compare_tensor_product, config=config,
-        distal_boundary_mm=distal_boundary_mm, proximal_boundary_mm=proximal_boundary_mm, timings=timings,
-    )
+        bone = load_input(source, settings, units=units)
+    return reconstruct_bone(bone, out_dir, settings, until=until, timings=timings, executor=executor)
 
 
-def run_demo(out_dir: str | Path, *, config: dict | None = None) -> Reconstruction:
+def run_demo(out_dir: str | Path, settings: Settings | None = None) -> Reconstruction:
     """``bonecad demo``: the embedded phantom as a real case starts, from its CT, through every stage.
 
     Writes the phantom's mesh (phantom.stl) and its synthetic CT (0.8 mm voxels,
@@ -396,21 +328,20 @@ def run_demo(out_dir: str | Path, *, config: dict | None = None) -> Reconstructi
     then runs the pipeline on the DICOM series.
     """
     from bonecad.imaging import mesh_to_ct
-    from bonecad.imaging.phantom_tibia import phantom_tibia
+    from bonecad.imaging.phantom_tibia import TibiaParameters, phantom_tibia
     from bonecad.imaging.volume import write_dicom_series, write_nifti
 
-    config = config or load_config()
+    settings = settings if settings is not None else Settings.load()
     timings = Timings()
     with staged_output(out_dir) as stage_dir:
         with timings.stage("phantom tibia and its CT"):
-            phantom = phantom_tibia()
+            phantom = phantom_tibia(TibiaParameters(), settings=settings.mesh, plausible=settings.units)
             phantom.to_trimesh().export(stage_dir / "phantom.stl")
             ct = mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=0.8)
             write_nifti(ct, stage_dir / "phantom_ct.nii.gz")
             dicom = write_dicom_series(ct, stage_dir / "phantom_ct")
         with timings.stage("segmentation of the phantom CT"):
             # named by where the series will be, not by the staging folder
-            bone = replace(load_input(dicom, config=config), source=str(Path(out_dir) / dicom.name))
-        result = reconstruct_bone(bone, stage_dir, config=config, timings=timings)
-    result.out_dir = Path(out_dir)
-    return result
+            bone = replace(load_input(dicom, settings), source=str(Path(out_dir) / dicom.name))
+        result = reconstruct_bone(bone, stage_dir, settings, timings=timings)
+    return replace(result, out_dir=Path(out_dir))

@@ -2,17 +2,11 @@
 curves, fitted to the polygonal model with local refinement, two apex caps,
 Bezier-extracted into a closed OpenCascade solid (DESIGN.md step 5)."""
 from bonecad.tspline_model.caps import ApexCap
-from bonecad.splines.tspline.fit import FitResult, FitStats, FitTolerances, fit_adaptive, project_points
-from bonecad.tspline_model.model import TSplineModel, build_tspline_model, write_tspline
+from bonecad.tspline_model.model import TSplineModel, build_tspline_model, mesh_noise_mm
 
 __all__ = [
     "ApexCap",
-    "FitResult",
-    "FitStats",
-    "FitTolerances",
     "TSplineModel",
     "build_tspline_model",
-    "fit_adaptive",
-    "project_points",
-    "write_tspline",
+    "mesh_noise_mm",
 ]

@@ -17,22 +17,20 @@ Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
 """
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from bonecad.anatomy.frame import AnatomicalFrame
-from bonecad.config import load_config
 from bonecad.contours.curves import ContourSet, bone_coordinates
 from bonecad.errors import KernelError
+from bonecad.occ.pickling import ShapePickling
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.sampling import fit_samples
-from bonecad.run.executor import JobGroup
-from bonecad.splines.tspline import TSpline, to_dict
+from bonecad.settings import TSplineSettings
+from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
 from bonecad.splines.tspline.fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm, voxel_step_mm
@@ -45,7 +43,7 @@ _SEWING_TOLERANCES_MM = (1e-4, 1e-3, 1e-2)
 
 
 @dataclass(frozen=True)
-class TSplineModel:
+class TSplineModel(ShapePickling):
     """The fitted T-spline model of one tibia.
 
     tspline : the tube (bone coordinates, mm); caps : the two apex caps.
@@ -122,26 +120,33 @@ class TSplineModel:
         }
 
 
-def tspline_settings(config: dict | None = None) -> dict:
-    """The [tspline] settings (defaults laid under ``config``'s)."""
-    config = config or load_config()
-    return dict(config["tspline"])
-
-
-def tolerances(settings: dict) -> FitTolerances:
-    share, within = settings["target_share_within_mm"]
+def tolerances(settings: TSplineSettings) -> FitTolerances:
+    """The fit's tolerances and refinement controls from the [tspline] settings."""
     return FitTolerances(
-        share_within=(float(share), float(within)),
-        max_deviation_mm=float(settings["max_deviation_mm"]),
-        rms_mm=float(settings["rms_mm"]),
-        max_control_points=int(settings["max_control_points"]),
-        max_rounds=int(settings["max_rounds"]),
-        min_element_mm=float(settings["min_element_mm"]),
-        mark_fraction=float(settings["mark_fraction"]),
-        noise_factor=float(settings["noise_factor"]),
-        split_anisotropy=float(settings["split_anisotropy"]),
-        mark_deficit_factor=float(settings["mark_deficit_factor"]),
+        share_within=settings.target_share_within_mm,
+        max_deviation_mm=settings.max_deviation_mm,
+        rms_mm=settings.rms_mm,
+        max_control_points=settings.max_control_points,
+        max_rounds=settings.max_rounds,
+        min_element_mm=settings.min_element_mm,
+        mark_fraction=settings.mark_fraction,
+        noise_factor=settings.noise_factor,
+        split_anisotropy=settings.split_anisotropy,
+        mark_deficit_factor=settings.mark_deficit_factor,
     )
+
+
+def fit_points(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's points in bone coordinates and their area weights (mm, mm^2): the mesh vertices, or
+    on a coarse mesh its edge midpoints, which integrate its facets (its vertices are their corners)."""
+    return fit_samples(*bone_coordinates(bone, frame), settings.fit_point_spacing_mm)
+
+
+def mesh_noise_mm(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings) -> np.ndarray:
+    """The local noise (mm) at every fit point: the same spacing on every mesh, so the same scale; a
+    staircase (voxel-mask mesh), whose lattice shows in scanner coordinates, has at least its steps'."""
+    vertices, _ = fit_points(bone, frame, settings)
+    return local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=voxel_step_mm(bone.vertices))
 
 
 def hole_masks(vertices: np.ndarray, par: Parameterisation, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -195,53 +200,48 @@ def build_tspline_model(
     frame: AnatomicalFrame,
     contours: ContourSet,
     *,
-    config: dict | None = None,
-    compare_tensor_product: bool | None = None,
-    jobs: JobGroup | None = None,
+    settings: TSplineSettings,
+    apex_hole_radius_mm: float,
+    noise_mm: np.ndarray | None = None,
 ) -> TSplineModel:
     """Skin, fit, refine, cap and convert: the T-spline model of a tibia.
 
-    config : a full configuration (``load_config()``); its [tspline] section is used.
-    compare_tensor_product : fit the tensor-product comparison surface too
-        (default: the ``compare_tensor_product`` setting); it about doubles the time.
-    jobs : background jobs (``bonecad.run.executor``): the mesh's local noise is then
-        measured on the second core while the first parameters are found.
+    settings : the [tspline] settings (``compare_tensor_product`` fits the
+        tensor-product comparison surface too; it about doubles the time).
+    apex_hole_radius_mm : the contour curves' apex hole radius.
+    noise_mm : ``mesh_noise_mm`` of the same bone, frame and settings, when the
+        caller measured it already (the runner does, on the second core).
     Raises FitError when a stage cannot produce a usable surface, KernelError
     when OpenCascade cannot make a valid closed solid of it.
     """
-    config = config or load_config()
-    st = tspline_settings(config)
+    st = settings
     tol = tolerances(st)
-    fair = float(st["fairness_weight"])
-    fit_fair = float(st["fit_fairness_weight"])
+    fair, fit_fair = st.fairness_weight, st.fit_fairness_weight
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
-    # a coarse mesh is sampled at its edge midpoints, which integrate its facets (its vertices are their corners)
-    vertices, weights = fit_samples(*bone_coordinates(bone, frame), float(st["fit_point_spacing_mm"]))
+    vertices, weights = fit_points(bone, frame, st)
     par = parameterisation(contours)
-    radius = float(config["curves"]["apex_hole_radius_mm"])
+    radius = apex_hole_radius_mm
     hole_d, hole_p = hole_masks(vertices, par, radius)
     rings = ring_constraints(contours, par, radius)
     keep = ~(hole_d | hole_p) & (weights > 0)
     pts, w = vertices[keep], weights[keep]
 
-    mesh = initial_mesh(par, s_intervals=int(st["initial_s_intervals"]), t_spacing_mm=float(st["initial_t_spacing_mm"]),
-                        apex_rows=int(st["apex_rows"]))
+    mesh = initial_mesh(par, s_intervals=st.initial_s_intervals, t_spacing_mm=st.initial_t_spacing_mm,
+                        apex_rows=st.apex_rows)
     ts0, _, residual = skin(contours, par, mesh, fairness=fair)
     skin_res = (float(np.sqrt(np.mean(residual**2))), float(residual.max()))
     timings["skin"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    # the noise of the fit's own points (the same spacing on every mesh: the same scale);
-    # a staircase (voxel-mask mesh) shows its lattice in scanner coordinates
     voxel = voxel_step_mm(bone.vertices)
     if voxel:
         log.info("the mesh is a %.2f mm voxel staircase (vertices on a lattice): its steps count as noise", voxel)
-    noise_job = (jobs or JobGroup(background=False)).start(
-        local_noise_mm, vertices, neighbours=int(st["noise_neighbours"]), voxel_mm=voxel)
     s0, t0, _ = initial_parameters(ts0, pts)
-    noise = noise_job.result()[0][keep]
+    if noise_mm is None:
+        noise_mm = mesh_noise_mm(bone, frame, st)
+    noise = noise_mm[keep]
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
                        constraints=rings, noise=noise)
     timings["fit"] = time.perf_counter() - clock
@@ -250,12 +250,11 @@ def build_tspline_model(
         log.warning("T-spline fit stopped before the tolerances held: %s (%s)%s", fit.stopped, fit.stats.to_dict(),
                     staircase)
 
-    do_tp = bool(st["compare_tensor_product"]) if compare_tensor_product is None else compare_tensor_product
     tp_fit = None
-    if do_tp:
+    if st.compare_tensor_product:
         clock = time.perf_counter()
-        grid = initial_mesh(par, s_intervals=int(st["initial_s_intervals"]),
-                            t_spacing_mm=float(st["initial_t_spacing_mm"]), apex_rows=0)
+        grid = initial_mesh(par, s_intervals=st.initial_s_intervals, t_spacing_mm=st.initial_t_spacing_mm,
+                            apex_rows=0)
         tp0, _, _ = skin(contours, par, grid, fairness=fair)
         s1, t1, _ = initial_parameters(tp0, pts)
         tp_fit = fit_adaptive(tp0, pts, w, s=s1, t=t1, tolerances=tol, fairness=fit_fair, mode="global",
@@ -336,36 +335,3 @@ def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisati
             return solid, face_names
         problems.append(f"{tol} mm: not valid (BRepCheck_Analyzer)")
     raise KernelError(f"the T-spline faces ({len(named)}) do not sew into a valid closed solid: " + "; ".join(problems))
-
-
-def write_tspline(model: TSplineModel, out_dir: str | Path) -> dict[str, Path]:
-    """Write tspline.step, tspline.iges (the solid named "tspline", faces by region) and
-    tspline.json (scanner coordinates, mm) into ``out_dir``."""
-    from bonecad.occ.brep import write_named_iges, write_named_step
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    names = list(model.face_names)
-    paths = {
-        "step": write_named_step(model.shape, out / "tspline.step", "tspline", names),
-        "iges": write_named_iges(model.shape, out / "tspline.iges", "tspline", names),
-    }
-    doc = {
-        "format": "bonecad.tspline_model",
-        "version": 1,
-        "units": "mm",
-        "coordinates": "input (scanner) coordinates",
-        "tube": to_dict(to_scanner(model.tspline, model.frame)),
-        "caps": {c.end: to_dict(to_scanner(c.tspline, model.frame)) for c in model.caps},
-        # no timings (they are in report.json): the same input gives the same tspline.json
-        "summary": {key: value for key, value in model.summary().items() if key != "timings_s"},
-    }
-    path = out / "tspline.json"
-    tmp = path.with_suffix(".json.part")
-    tmp.write_text(json.dumps(doc))
-    tmp.replace(path)
-    paths["json"] = path
-    return paths
-
-
-

@@ -43,16 +43,9 @@ from bonecad.splines.tspline.basis import bernstein3
 log = logging.getLogger("bonecad")
 
 
-def _setting(key: str):
-    """A [tspline] default from bonecad/data/defaults.toml (the figures live there, not in code)."""
-    from bonecad.config import load_config
-
-    return load_config()["tspline"][key]
-
-
 @dataclass(frozen=True)
 class FitTolerances:
-    """When a fit is good enough, and how hard to try (defaults: [tspline] in defaults.toml).
+    """When a fit is good enough, and how hard to try (the models take them from their settings).
 
     share_within : (share, mm): this share of the (weighted) points lies within mm.
     max_deviation_mm : no point beyond this.
@@ -78,16 +71,16 @@ class FitTolerances:
         refinement (an MRI slice staircase is not followed).
     """
 
-    share_within: tuple[float, float] = field(default_factory=lambda: tuple(_setting("target_share_within_mm")))
-    max_deviation_mm: float = field(default_factory=lambda: float(_setting("max_deviation_mm")))
-    rms_mm: float = field(default_factory=lambda: float(_setting("rms_mm")))
-    max_control_points: int = field(default_factory=lambda: int(_setting("max_control_points")))
-    max_rounds: int = field(default_factory=lambda: int(_setting("max_rounds")))
-    min_element_mm: float = field(default_factory=lambda: float(_setting("min_element_mm")))
-    mark_fraction: float = field(default_factory=lambda: float(_setting("mark_fraction")))
-    noise_factor: float = field(default_factory=lambda: float(_setting("noise_factor")))
-    split_anisotropy: float = field(default_factory=lambda: float(_setting("split_anisotropy")))
-    mark_deficit_factor: float = field(default_factory=lambda: float(_setting("mark_deficit_factor")))
+    share_within: tuple[float, float]
+    max_deviation_mm: float
+    rms_mm: float
+    max_control_points: int
+    max_rounds: int
+    min_element_mm: float
+    mark_fraction: float
+    noise_factor: float
+    split_anisotropy: float
+    mark_deficit_factor: float
 
 
 @dataclass(frozen=True)
@@ -551,7 +544,7 @@ def fit_adaptive(
     *,
     s: np.ndarray | None = None,
     t: np.ndarray | None = None,
-    tolerances: FitTolerances | None = None,
+    tolerances: FitTolerances,
     fairness: float = 1e-4,
     mode: Literal["local", "global"] = "local",
     corrections: int = 2,
@@ -573,7 +566,7 @@ def fit_adaptive(
     noise : optional (n,) mm, the data's local noise level (``local_noise_mm``);
         points within ``tolerances.noise_factor`` times it never ask for refinement.
     """
-    tol = tolerances or FitTolerances()
+    tol = tolerances
     if mode not in ("local", "global"):
         raise InputError(f"mode: expected 'local' or 'global', got {mode!r}")
     points = np.asarray(points, dtype=np.float64)

@@ -3,7 +3,7 @@ gives back bit-identical arrays.
 
 Layout (version 1)::
 
-    {"format": "bonecad.splines.tspline", "version": 1,
+    {"format": "bonecad.tspline", "version": 1,
      "s_lines": [...], "t_lines": [...], "s_period": float | null,
      "s_edges": [[t_line, first_segment, end_segment], ...],   # runs, end exclusive
      "t_edges": [[s_line, first_segment, end_segment], ...],
@@ -24,7 +24,7 @@ from bonecad.errors import InputError
 from bonecad.splines.tspline.tmesh import TMesh
 from bonecad.splines.tspline.tspline import TSpline
 
-FORMAT = "bonecad.splines.tspline"
+FORMAT = "bonecad.tspline"
 VERSION = 1
 
 

@@ -1,0 +1,63 @@
+"""STEP and IGES exporters: the models (one named solid, faces by region) and the contour curves
+with the frame's reference entities (named curves, points, lines, planes), in scanner mm."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from bonecad.contours.curves import ContourSet
+from bonecad.export import exporter
+from bonecad.export.documents import FrameDocument
+from bonecad.nurbs_model.model import NurbsModel
+from bonecad.occ import brep
+from bonecad.occ.curves import to_edge
+from bonecad.occ.exchange import frame_entities, write_iges, write_step
+from bonecad.tspline_model.model import TSplineModel
+
+
+def _curve_tree(contours: ContourSet):
+    """(name, [groups]): every contour curve (mapped back to scanner coordinates, exact: an affine map
+    of the poles) and the reference entities."""
+    frame = contours.frame
+    curves = [(c.name, to_edge(c.curve.transformed(frame.axes, frame.origin), c.name)) for c in contours.all_curves()]
+    return ("bonecad_curves", [("contour_curves", curves), ("reference_entities", frame_entities(frame))])
+
+
+@exporter("curves", "step")
+def curves_step(contours: ContourSet, out_dir: Path) -> Path:
+    return write_step(_curve_tree(contours), out_dir / "curves.step")
+
+
+@exporter("curves", "iges")
+def curves_iges(contours: ContourSet, out_dir: Path) -> Path:
+    return write_iges(_curve_tree(contours), out_dir / "curves.iges")
+
+
+@exporter("frame", "step")
+def frame_step(doc: FrameDocument, out_dir: Path) -> Path:
+    """The reference entities alone, as curves.step (``bonecad frame``)."""
+    return write_step(("reference_entities", frame_entities(doc.frame)), out_dir / "curves.step")
+
+
+def _model_file(model: NurbsModel | TSplineModel, name: str, out_dir: Path, fmt: str) -> Path:
+    write = brep.write_named_step if fmt == "step" else brep.write_named_iges
+    return write(model.shape, out_dir / f"{name}.{fmt}", name, list(model.face_names))
+
+
+@exporter("nurbs", "step")
+def nurbs_step(model: NurbsModel, out_dir: Path) -> Path:
+    return _model_file(model, "nurbs", out_dir, "step")
+
+
+@exporter("nurbs", "iges")
+def nurbs_iges(model: NurbsModel, out_dir: Path) -> Path:
+    return _model_file(model, "nurbs", out_dir, "iges")
+
+
+@exporter("tspline", "step")
+def tspline_step(model: TSplineModel, out_dir: Path) -> Path:
+    return _model_file(model, "tspline", out_dir, "step")
+
+
+@exporter("tspline", "iges")
+def tspline_iges(model: TSplineModel, out_dir: Path) -> Path:
+    return _model_file(model, "tspline", out_dir, "iges")

@@ -1,0 +1,244 @@
+"""Typed settings: one frozen dataclass per section of ``data/defaults.toml``.
+
+The figures (angles, control-point counts, tolerances) and the reasons for
+them live in the data file, not here: these classes give each one a type and
+a unit. ``Settings.load`` lays a user's TOML file (same layout) and then the
+command line's overrides over the defaults, checks every key and type, and
+returns one frozen tree; each stage receives only its own section.
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import typing
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from bonecad.errors import InputError
+
+ApexFill = Literal["ring", "patch"]
+ModelName = Literal["nurbs", "tspline"]
+
+
+@dataclass(frozen=True)
+class UnitsSettings:
+    """Plausible tibia length (mm, long axis): outside it the mesh is in other units or not a whole tibia."""
+
+    tibia_length_mm: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class MeshSettings:
+    """Mesh intake: fragments and broken pieces (shares of the largest body's volume), hole filling (edges)."""
+
+    fragment_volume_share: float
+    broken_piece_volume_share: float
+    max_hole_edges: int
+
+
+@dataclass(frozen=True)
+class AnatomySettings:
+    """Anatomical frame: articular-surface search (shares of the length), metaphysis flare ratios
+    (section area / narrowest shaft area), and region boundaries (mm above the plafond centre;
+    0: found from the flare)."""
+
+    plateau_search_share: float
+    plafond_search_share: float
+    distal_flare_ratio: float
+    proximal_flare_ratio: float
+    distal_boundary_mm: float
+    proximal_boundary_mm: float
+
+
+@dataclass(frozen=True)
+class CurvesSettings:
+    """Contour curves: half-plane angles (degrees from lateral towards anterior), control points,
+    tolerances (mm), shaft section spacing (mm), apex hole radius (mm)."""
+
+    distal_angles_deg: tuple[float, ...]
+    proximal_angles_deg: tuple[float, ...]
+    degree: int
+    distal_control_points: int
+    proximal_control_points: int
+    shaft_control_points: int
+    distal_tolerance_mm: float
+    proximal_tolerance_mm: float
+    shaft_tolerance_mm: float
+    shaft_sections: int
+    shaft_min_spacing_mm: float
+    apex_hole_radius_mm: float
+
+
+@dataclass(frozen=True)
+class NurbsSettings:
+    """NURBS baseline: how the apex holes are filled, sewing tolerance (mm)."""
+
+    apex_fill: ApexFill
+    sewing_tolerance_mm: float
+
+
+@dataclass(frozen=True)
+class TSplineSettings:
+    """T-spline model: fit tolerances (share within mm, max and RMS mm), fairness weights, budget,
+    fit point spacing (mm), starting T-mesh, refinement and noise-aware stopping."""
+
+    target_share_within_mm: tuple[float, float]
+    max_deviation_mm: float
+    rms_mm: float
+    fairness_weight: float
+    fit_fairness_weight: float
+    max_control_points: int
+    fit_point_spacing_mm: float
+    initial_s_intervals: int
+    initial_t_spacing_mm: float
+    apex_rows: int
+    max_rounds: int
+    min_element_mm: float
+    mark_fraction: float
+    mark_deficit_factor: float
+    split_anisotropy: float
+    noise_neighbours: int
+    noise_factor: float
+    compare_tensor_product: bool
+
+
+@dataclass(frozen=True)
+class AnalysisSettings:
+    """Deviation histogram bands (mm), samples per direction, tessellation (mm, rad, relative),
+    seam classes (gap mm, angle degrees, relative curvature jump, flat radius mm)."""
+
+    band_width_mm: float
+    band_limit_mm: float
+    sample_points: int
+    tessellation_deflection_mm: float
+    tessellation_angular_deflection_rad: float
+    tessellation_max_edge_mm: float
+    coverage_tolerance: float
+    small_face_shortfall_factor: float
+    area_rel_eps: float
+    continuity_gap_mm: float
+    continuity_angle_deg: float
+    continuity_curvature_jump: float
+    continuity_curvature_radius_ref_mm: float
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    """The runner: which models to build, whether independent stages run on the second core."""
+
+    models: tuple[ModelName, ...]
+    background_jobs: bool
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Every setting of a run, one section per stage (see ``data/defaults.toml``)."""
+
+    units: UnitsSettings
+    mesh: MeshSettings
+    anatomy: AnatomySettings
+    curves: CurvesSettings
+    nurbs: NurbsSettings
+    tspline: TSplineSettings
+    analysis: AnalysisSettings
+    pipeline: PipelineSettings
+
+    @classmethod
+    def load(cls, path: str | Path | None = None,
+             overrides: Mapping[str, Mapping[str, Any]] | None = None) -> Settings:
+        """The defaults, then the TOML file ``path`` (if given), then ``overrides``
+        ({section: {key: value}}, e.g. from command-line flags) laid over them."""
+        tree = _read_defaults()
+        if path is not None:
+            try:
+                user = tomllib.loads(Path(path).read_text())
+            except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+                raise InputError(f"cannot read configuration: {exc}", path) from exc
+            tree = _merged(tree, user, path)
+        if overrides:
+            tree = _merged(tree, {k: dict(v) for k, v in overrides.items() if v}, path)
+        return _build(cls, tree, "", path)
+
+    def replace(self, section: str, **values: Any) -> Settings:
+        """A copy with some values of one section changed (checked like a file's)."""
+        return Settings.load(overrides={**self.to_dict(), section: values}) if values else self
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """The settings as the TOML layout (tuples as lists)."""
+        return {name: {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(section).items()}
+                for name, section in ((f.name, getattr(self, f.name)) for f in dataclasses.fields(self))}
+
+
+def _read_defaults() -> dict[str, Any]:
+    text = resources.files("bonecad").joinpath("data/defaults.toml").read_text()
+    return tomllib.loads(text)
+
+
+def _merged(base: dict[str, Any], override: Mapping[str, Any], path: str | Path | None,
+            where: str = "") -> dict[str, Any]:
+    """``base`` with ``override`` laid over it; unknown keys and tables given as values are errors."""
+    out = dict(base)
+    for key, value in override.items():
+        if key not in base:
+            raise InputError(f"unknown setting '{where}{key}'", path)
+        if isinstance(base[key], dict):
+            if not isinstance(value, Mapping):
+                raise InputError(f"setting '{where}{key}' must be a table", path)
+            out[key] = _merged(base[key], value, path, f"{where}{key}.")
+        else:
+            out[key] = value
+    return out
+
+
+def _build(cls: type, table: Mapping[str, Any], where: str, path: str | Path | None) -> Any:
+    hints = typing.get_type_hints(cls)
+    missing = [f.name for f in dataclasses.fields(cls) if f.name not in table]
+    if missing:
+        raise InputError(f"settings '{where}' lack {missing} (data/defaults.toml is incomplete)", path)
+    values = {}
+    for f in dataclasses.fields(cls):
+        name = f"{where}{f.name}"
+        values[f.name] = (_build(hints[f.name], table[f.name], f"{name}.", path)
+                          if dataclasses.is_dataclass(hints[f.name])
+                          else _typed(table[f.name], hints[f.name], name, path))
+    return cls(**values)
+
+
+def _typed(value: Any, hint: Any, name: str, path: str | Path | None) -> Any:
+    """``value`` checked against ``hint`` (float, int, bool, str, Literal, tuple[...]), ints widened to float."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Literal:
+        if value not in args:
+            raise InputError(f"setting '{name}' must be one of {list(args)}, got {value!r}", path)
+        return value
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise InputError(f"setting '{name}' must be a list, got {value!r}", path)
+        items = args[:1] * len(value) if len(args) == 2 and args[1] is Ellipsis else args
+        if len(items) != len(value):
+            raise InputError(f"setting '{name}' must have {len(items)} values, got {len(value)}", path)
+        return tuple(_typed(v, h, name, path) for v, h in zip(value, items))
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise InputError(f"setting '{name}' must be true or false, got {value!r}", path)
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"setting '{name}' must be an integer, got {value!r}", path)
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"setting '{name}' must be a number, got {value!r}", path)
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise InputError(f"setting '{name}' must be a string, got {value!r}", path)
+        return value
+    raise TypeError(f"setting '{name}': unsupported type {hint!r}")

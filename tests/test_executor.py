@@ -1,0 +1,135 @@
+"""Executors (bonecad.run.executor): same results in a child as in process, a failing job ends the
+block at once (whatever the parent is doing), and no child outlives its block or its parent."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from bonecad.errors import InputError
+from bonecad.run.executor import Fork, InProcess, executor_for
+
+needs_fork = pytest.mark.skipif(not Fork.available(), reason="fork is not available on this platform")
+
+
+def _stats(values: np.ndarray, scale: float) -> dict:
+    return {"sum": float(values.sum() * scale), "pid": os.getpid()}
+
+
+def _fails(path: str):
+    raise InputError("no bone in this volume", path)
+
+
+def _sleeps(seconds: float) -> int:
+    time.sleep(seconds)
+    return os.getpid()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as fh:  # a zombie is dead
+        return fh.read().split()[2] != "Z"
+
+
+@needs_fork
+def test_a_job_returns_what_the_function_returns_in_a_child():
+    values = np.arange(1000.0)
+    with Fork() as ex:
+        job = ex.submit(_stats, values, scale=2.0)
+        result = job.result()
+    assert result["sum"] == float(values.sum() * 2.0)
+    assert result["pid"] != os.getpid()
+
+
+@pytest.mark.parametrize("make", [Fork, InProcess], ids=["fork", "in-process"])
+def test_same_result_and_same_error_either_way(make):
+    if make is Fork and not Fork.available():
+        pytest.skip("fork is not available on this platform")
+    with make() as ex:
+        assert ex.submit(_stats, np.ones(10), scale=3.0).result()["sum"] == 30.0
+    with pytest.raises(InputError, match="no bone") as info:
+        with make() as ex:
+            ex.submit(_fails, "/data/ct.nii").result()
+    assert info.value.path == "/data/ct.nii"
+
+
+@needs_fork
+def test_a_failing_job_interrupts_the_parent_while_its_siblings_run():
+    """The parent is busy (a long computation of its own) and a sibling job sleeps; the failing job
+    ends the block within a second, with its own error, and the sibling is stopped."""
+    started = time.perf_counter()
+    with pytest.raises(InputError, match="no bone"):
+        with Fork() as ex:
+            sibling = ex.submit(_sleeps, 30.0)
+            ex.submit(_fails, "/data/ct.nii")
+            deadline = time.perf_counter() + 30.0
+            while time.perf_counter() < deadline:  # the parent's own long work
+                np.linalg.svd(np.ones((50, 50)))
+    assert time.perf_counter() - started < 5.0
+    assert not _alive(sibling._process.pid)
+
+
+@needs_fork
+def test_children_are_stopped_when_the_block_fails():
+    with pytest.raises(RuntimeError, match="parent failed"):
+        with Fork() as ex:
+            jobs = [ex.submit(_sleeps, 30.0) for _ in range(2)]
+            raise RuntimeError("parent failed")
+    assert not any(_alive(job._process.pid) for job in jobs)
+
+
+@needs_fork
+def test_a_child_that_dies_is_an_error_not_a_hang():
+    with pytest.raises(RuntimeError, match="died"):
+        with Fork() as ex:
+            job = ex.submit(os._exit, 3)
+            job.result()
+
+
+@needs_fork
+def test_children_die_with_a_killed_parent(tmp_path):
+    """SIGKILL of the parent cannot run any cleanup; the parent-death signal still ends the children."""
+    pids = tmp_path / "pids"
+    script = textwrap.dedent(f"""
+        import os, time
+        from bonecad.run.executor import Fork
+        def sleeps():
+            time.sleep(60)
+        with Fork() as ex:
+            jobs = [ex.submit(sleeps) for _ in range(2)]
+            open({str(pids)!r}, "w").write(" ".join(str(j._process.pid) for j in jobs))
+            time.sleep(60)
+    """)
+    parent = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        deadline = time.time() + 30
+        while not (pids.exists() and pids.read_text()) and time.time() < deadline:
+            time.sleep(0.05)
+        children = [int(p) for p in pids.read_text().split()]
+        assert all(_alive(p) for p in children)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.time() + 5
+        while any(_alive(p) for p in children) and time.time() < deadline:
+            time.sleep(0.05)
+        assert not any(_alive(p) for p in children)
+    finally:
+        parent.kill()
+        for p in [int(p) for p in pids.read_text().split()] if pids.exists() and pids.read_text() else []:
+            try:
+                os.kill(p, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def test_in_process_when_fork_is_not_wanted():
+    assert isinstance(executor_for(False), InProcess)
