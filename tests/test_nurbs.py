@@ -14,7 +14,8 @@ from bonecad.errors import InputError
 from bonecad.nurbs_model import FACE_NAMES, BSplineSurface, build_nurbs, write_nurbs
 from bonecad.occ import brep
 from bonecad.occ import surfaces as occ
-from bonecad.splines.surface import interpolate_clamped, interpolate_periodic, periodic_knots
+from bonecad.splines.knots import periodic_knots
+from bonecad.splines.surface import interpolate_clamped, interpolate_periodic
 
 from .conftest import real_mesh_params
 

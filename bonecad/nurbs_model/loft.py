@@ -26,9 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from bonecad.splines.basis import design_matrix
 from bonecad.splines.curve import (
     BSplineCurve,
-    _design_matrix,
     _fairness,
     _solve,
     _solve_tangent_distance,
@@ -37,7 +37,8 @@ from bonecad.splines.curve import (
 )
 from bonecad.contours.curves import ContourCurve, ContourSet
 from bonecad.errors import FitError
-from bonecad.splines.surface import BSplineSurface, interpolate_clamped, interpolate_periodic, periodic_knots
+from bonecad.splines.knots import periodic_knots
+from bonecad.splines.surface import BSplineSurface, interpolate_clamped, interpolate_periodic
 
 
 @dataclass(frozen=True)
@@ -101,14 +102,14 @@ def refit_to_knots(
         return np.linalg.norm(curve(u) - points, axis=1)
 
     for _ in range(corrections + 1):
-        curve = BSplineCurve(_solve(_design_matrix(u, knots, degree, False, count), points, weights, fair), knots, degree)
+        curve = BSplineCurve(_solve(design_matrix(u, knots, degree, False, count), points, weights, fair), knots, degree)
         u = project_parameters(curve, points, u)
         u[0], u[-1] = 0.0, 1.0
     best = (float(residual(curve, u).max()), curve, u)
     for _ in range(3):
         tangents = curve(u, 1)
         tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
-        a = _design_matrix(u, knots, degree, False, count)
+        a = design_matrix(u, knots, degree, False, count)
         curve = BSplineCurve(_solve_tangent_distance(a, points, tangents, weights, fair), knots, degree)
         u = project_parameters(curve, points, u)
         u[0], u[-1] = 0.0, 1.0
@@ -204,7 +205,7 @@ def refit_section(
     knots = periodic_knots(count)
     weights = np.ones(len(points))
     fair = fairness * (len(points) / count) * _fairness(count, True)
-    a = _design_matrix(u, knots, 3, True, count)
+    a = design_matrix(u, knots, 3, True, count)
     curve = BSplineCurve(_solve(a, points, weights, fair), knots, 3, True)
     for _ in range(2):  # tangent-distance steps: errors across the curve count, sliding along it barely
         tangents = curve(u, 1)

@@ -21,6 +21,7 @@ from bonecad.errors import InputError, KernelError
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.closest import vertex_normals
 from bonecad.splines.evaluate import SplineSurface, SurfaceSet, project, project_faces
+from bonecad.splines.knots import breakpoints
 
 
 def _setting(key: str):
@@ -316,11 +317,6 @@ def is_natural(face, surface: SplineSurface) -> bool:
     return True
 
 
-def _breaks(knots: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    inner = np.unique(knots[(knots > lo) & (knots < hi)])
-    return np.concatenate([[lo], inner, [hi]])
-
-
 #: samples per knot span and cross lines per face used to size a grid
 _SIZE_SAMPLES, _SIZE_LINES = 5, 5
 
@@ -399,7 +395,7 @@ def _grid_tessellation(sset: SurfaceSet, faces: list[int], reversed_faces: np.nd
     for f in faces:
         s = sset.surfaces[f]
         u0, u1, v0, v1 = s.bounds
-        breaks.append((_breaks(s.knots_u, u0, u1), _breaks(s.knots_v, v0, v1)))
+        breaks.append((breakpoints(s.knots_u, u0, u1), breakpoints(s.knots_v, v0, v1)))
     counts_u, counts_v = _grid_counts(sset, faces, breaks, settings, factor)
     grids = [(_subdivide(bu, cu), _subdivide(bv, cv)) for (bu, bv), cu, cv in zip(breaks, counts_u, counts_v)]
     # faces with the same grid size share one index pattern: build them together

@@ -16,6 +16,9 @@ from scipy import sparse
 from scipy.interpolate import BSpline
 
 from bonecad.errors import FitError
+from bonecad.splines.basis import design_matrix
+from bonecad.splines.knots import unclamped_periodic, wrapped_poles
+from bonecad.splines.lsq import normal_equations, solve_dense
 
 
 @dataclass(frozen=True)
@@ -36,8 +39,8 @@ class BSplineCurve:
     def _spline(self) -> BSpline:
         if not self.periodic:
             return BSpline(self.knots, self.control_points, self.degree)
-        t, c = _periodic_extension(self.control_points, self.degree)
-        return BSpline(t, c, self.degree, extrapolate="periodic")
+        t = unclamped_periodic(self.count, self.degree)
+        return BSpline(t, wrapped_poles(self.control_points, self.degree), self.degree, extrapolate="periodic")
 
     def __call__(self, u: np.ndarray, nu: int = 0) -> np.ndarray:
         """(m, 3) points (or derivatives of order ``nu``) at parameters ``u`` in [0, 1]."""
@@ -53,14 +56,6 @@ class BSplineCurve:
     def transformed(self, matrix: np.ndarray, offset: np.ndarray) -> "BSplineCurve":
         """The same curve under the affine map x -> x @ matrix + offset (exact for B-splines)."""
         return BSplineCurve(self.control_points @ matrix + offset, self.knots, self.degree, self.periodic)
-
-
-def _periodic_extension(control_points: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unclamped knots and wrapped coefficients representing the periodic curve on [0, 1]."""
-    n = len(control_points)
-    t = (np.arange(-degree, n + degree + 1, dtype=np.float64)) / n
-    c = np.vstack([control_points, control_points[:degree]])
-    return t, c
 
 
 def centripetal_parameters(points: np.ndarray, closed: bool) -> np.ndarray:
@@ -88,14 +83,6 @@ def averaged_knots(u: np.ndarray, count: int, degree: int) -> np.ndarray:
     return np.concatenate([np.zeros(degree + 1), interior, np.ones(degree + 1)])
 
 
-def _design_matrix(u: np.ndarray, knots: np.ndarray, degree: int, periodic: bool, count: int) -> sparse.csr_matrix:
-    if not periodic:
-        return BSpline.design_matrix(u, knots, degree).tocsr()
-    t, _ = _periodic_extension(np.zeros((count, 3)), degree)
-    full = BSpline.design_matrix(np.mod(u, 1.0), t, degree).tocoo()
-    return sparse.csr_matrix((full.data, (full.row, full.col % count)), shape=(len(u), count))
-
-
 def _fairness(count: int, periodic: bool) -> sparse.csr_matrix:
     """D^T D for the second differences of the control polygon (wrapping round when periodic)."""
     if periodic:
@@ -109,9 +96,7 @@ def _fairness(count: int, periodic: bool) -> sparse.csr_matrix:
 def _solve(a: sparse.csr_matrix, points: np.ndarray, weights: np.ndarray, fairness: sparse.csr_matrix) -> np.ndarray:
     """Weighted least squares with fairness: (A^T W A + F) P = A^T W X. Dense: a curve has at most a
     few hundred control points, where scipy.sparse's set-up costs more than the whole dense solve."""
-    dense = a.toarray()
-    aw = dense * weights[:, None]
-    return np.linalg.solve(aw.T @ dense + fairness.toarray(), aw.T @ points)
+    return solve_dense(*normal_equations(a.toarray(), weights, points, fairness.toarray()))
 
 
 def _solve_tangent_distance(
@@ -147,7 +132,7 @@ def _solve_tangent_distance(
     mx = np.einsum("irc,ic->ir", metric, points)
     rhs = np.zeros((n, 3))
     np.add.at(rhs, cols.ravel(), (vals[:, :, None] * mx[:, None, :]).reshape(-1, 3))
-    return np.linalg.solve(system, rhs.ravel()).reshape(n, 3)
+    return solve_dense(system, rhs.ravel()).reshape(n, 3)
 
 
 def project_parameters(curve: BSplineCurve, points: np.ndarray, u: np.ndarray, iterations: int = 4) -> np.ndarray:
@@ -237,7 +222,7 @@ def fit_curve(
     for _ in range(3):
         tangents = curve(u, 1)
         tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
-        a = _design_matrix(u, knots, degree, periodic, count)
+        a = design_matrix(u, knots, degree, periodic, count)
         curve = BSplineCurve(_solve_tangent_distance(a, points, tangents, weights, fair), knots, degree, periodic)
         u = project_parameters(curve, points, u)
         u[pinned] = reset
@@ -263,7 +248,7 @@ def _point_distance_fit(points, count, degree, periodic, corrections, fairness, 
     weights[pinned] = 1e8
     fair = fairness * (len(points) / count) * _fairness(count, periodic)
     for _ in range(corrections + 1):
-        a = _design_matrix(u, knots, degree, periodic, count)
+        a = design_matrix(u, knots, degree, periodic, count)
         curve = BSplineCurve(_solve(a, points, weights, fair), knots, degree, periodic)
         u = project_parameters(curve, points, u)
         u[pinned] = reset

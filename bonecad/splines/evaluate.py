@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bonecad.errors import InputError
+from bonecad.splines.basis import basis_functions, find_span
 
 
 @dataclass(frozen=True)
@@ -55,27 +56,6 @@ class SplineSurface:
                 f"knots_v has {len(self.knots_v)} entries, expected nv + degree_v + 1 = "
                 f"{nv + self.degree_v + 1}"
             )
-
-
-def _span(knots: np.ndarray, degree: int, t: np.ndarray) -> np.ndarray:
-    """Knot span index i with knots[i] <= t < knots[i+1], clamped to the valid range (A2.1)."""
-    n = len(knots) - degree - 1  # number of basis functions
-    span = np.searchsorted(knots, t, side="right") - 1
-    return np.clip(span, degree, n - 1)
-
-
-def basis_with_derivative(
-    knots: np.ndarray, degree: int, t: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Non-zero basis functions and their first derivatives at parameters ``t``.
-
-    Returns ``span`` (N,) int, ``values`` (N, p+1) and ``derivs`` (N, p+1); column r
-    belongs to basis function ``span - p + r`` (NURBS Book A2.2 and A2.3).
-    """
-    t = np.asarray(t, dtype=np.float64)
-    span = _span(knots, degree, t)
-    values, derivs = _basis_at_span(knots, degree, t, span)
-    return span, values, derivs
 
 
 def evaluate(
@@ -131,90 +111,6 @@ def project(
     )
 
 
-def _basis_at_span(knots: np.ndarray, degree: int, t: np.ndarray, span: np.ndarray):
-    """Basis values and first derivatives (N, p+1) at ``t`` in the given (global) spans (A2.2, A2.3)."""
-    p = degree
-    count = len(t)
-    left = np.empty((count, p + 1))
-    right = np.empty((count, p + 1))
-    values = np.ones((count, 1))
-    lower = values
-    for j in range(1, p + 1):
-        left[:, j] = t - knots[span + 1 - j]
-        right[:, j] = knots[span + j] - t
-        saved = np.zeros(count)
-        new = np.empty((count, j + 1))
-        for r in range(j):
-            denom = right[:, r + 1] + left[:, j - r]
-            temp = np.divide(values[:, r], denom, out=np.zeros(count), where=denom != 0)
-            new[:, r] = saved + right[:, r + 1] * temp
-            saved = left[:, j - r] * temp
-        new[:, j] = saved
-        lower = values
-        values = new
-    derivs = np.zeros((count, p + 1))
-    for r in range(p + 1 if p > 0 else 0):
-        i = span - p + r
-        if r >= 1:
-            d = knots[i + p] - knots[i]
-            derivs[:, r] += np.divide(p * lower[:, r - 1], d, out=np.zeros(count), where=d != 0)
-        if r <= p - 1:
-            d = knots[i + p + 1] - knots[i + 1]
-            derivs[:, r] -= np.divide(p * lower[:, r], d, out=np.zeros(count), where=d != 0)
-    return values, derivs
-
-
-def _basis_ders_at_span(knots: np.ndarray, degree: int, t: np.ndarray, span: np.ndarray, order: int) -> np.ndarray:
-    """Basis functions and their derivatives up to ``order``: (order + 1, N, p+1) at ``t`` (NURBS Book A2.3)."""
-    p = degree
-    count = len(t)
-
-    def div(a, b):
-        return np.divide(a, b, out=np.zeros(count), where=b != 0)
-
-    ndu = np.zeros((p + 1, p + 1, count))  # upper triangle: basis values; lower: knot differences
-    ndu[0, 0] = 1.0
-    left = np.zeros((p + 1, count))
-    right = np.zeros((p + 1, count))
-    for j in range(1, p + 1):
-        left[j] = t - knots[span + 1 - j]
-        right[j] = knots[span + j] - t
-        saved = np.zeros(count)
-        for r in range(j):
-            ndu[j, r] = right[r + 1] + left[j - r]
-            temp = div(ndu[r, j - 1], ndu[j, r])
-            ndu[r, j] = saved + right[r + 1] * temp
-            saved = left[j - r] * temp
-        ndu[j, j] = saved
-    ders = np.zeros((order + 1, count, p + 1))
-    ders[0] = ndu[:, p].T
-    for r in range(p + 1):
-        a = np.zeros((2, p + 1, count))
-        a[0, 0] = 1.0
-        s1, s2 = 0, 1
-        for k in range(1, order + 1):
-            d = np.zeros(count)
-            rk, pk = r - k, p - k
-            if r >= k:
-                a[s2, 0] = div(a[s1, 0], ndu[pk + 1, rk])
-                d += a[s2, 0] * ndu[rk, pk]
-            j1 = 1 if rk >= -1 else -rk
-            j2 = k - 1 if r - 1 <= pk else p - r
-            for j in range(j1, j2 + 1):
-                a[s2, j] = div(a[s1, j] - a[s1, j - 1], ndu[pk + 1, rk + j])
-                d += a[s2, j] * ndu[rk + j, pk]
-            if r <= pk:
-                a[s2, k] = div(-a[s1, k - 1], ndu[pk + 1, r])
-                d += a[s2, k] * ndu[r, pk]
-            ders[k, :, r] = d
-            s1, s2 = s2, s1
-    factor = p
-    for k in range(1, order + 1):
-        ders[k] *= factor
-        factor *= p - k
-    return ders
-
-
 class _Packed:
     """Surfaces of one degree pair with their knots and poles concatenated (one direction per knot array)."""
 
@@ -251,15 +147,15 @@ class _Packed:
 
     def _span(self, keys, key_off, nb, degree, lo, length, local, t):
         key = 2.0 * local + np.clip((t - lo[local]) / length[local], 0.0, 1.0)
-        span = np.searchsorted(keys, key, side="right") - 1 - key_off[local]
+        span = find_span(keys, key) - key_off[local]
         return np.clip(span, degree, nb[local] - 1) + key_off[local]
 
     def evaluate(self, local: np.ndarray, u: np.ndarray, v: np.ndarray):
         p, q = self.p, self.q
         su = self._span(self.ku_key, self.ku_off, self.nbu, p, self.lo_u, self.len_u, local, u)
         sv = self._span(self.kv_key, self.kv_off, self.nbv, q, self.lo_v, self.len_v, local, v)
-        nu_, du = _basis_at_span(self.ku, p, u, su)
-        nv_, dv = _basis_at_span(self.kv, q, v, sv)
+        nu_, du = basis_functions(self.ku, p, u, su, 1)
+        nv_, dv = basis_functions(self.kv, q, v, sv, 1)
         ids = self.block_off[local] + (su - self.ku_off[local] - p) * self.spans_v[local] + (
             sv - self.kv_off[local] - q
         )
@@ -280,8 +176,8 @@ class _Packed:
         p, q = self.p, self.q
         su = self._span(self.ku_key, self.ku_off, self.nbu, p, self.lo_u, self.len_u, local, u)
         sv = self._span(self.kv_key, self.kv_off, self.nbv, q, self.lo_v, self.len_v, local, v)
-        bu = _basis_ders_at_span(self.ku, p, u, su, 2)  # (3, N, p+1)
-        bv = _basis_ders_at_span(self.kv, q, v, sv, 2)
+        bu = basis_functions(self.ku, p, u, su, 2)  # (3, N, p+1)
+        bv = basis_functions(self.kv, q, v, sv, 2)
         ids = self.block_off[local] + (su - self.ku_off[local] - p) * self.spans_v[local] + (
             sv - self.kv_off[local] - q
         )

@@ -14,16 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.splines.curve import BSplineCurve, _design_matrix
+from bonecad.splines.basis import design_matrix
+from bonecad.splines.curve import BSplineCurve
+from bonecad.splines.knots import periodic_knots
+from bonecad.splines.lsq import solve_dense
 from bonecad.errors import FitError, InputError
 
 #: Largest condition number accepted for an interpolation system.
 _MAX_CONDITION = 1e8
-
-
-def periodic_knots(count: int) -> np.ndarray:
-    """The n + 1 uniform knots of one period of a periodic B-spline with ``count`` poles."""
-    return np.linspace(0.0, 1.0, count + 1)
 
 
 @dataclass(frozen=True)
@@ -74,8 +72,8 @@ class BSplineSurface:
 
     def _basis(self, t: np.ndarray, direction: str) -> np.ndarray:
         if direction == "u":
-            return _design_matrix(t, self.knots_u, self.degree_u, self.periodic_u, self.poles.shape[0]).toarray()
-        return _design_matrix(t, self.knots_v, self.degree_v, self.periodic_v, self.poles.shape[1]).toarray()
+            return design_matrix(t, self.knots_u, self.degree_u, self.periodic_u, self.poles.shape[0]).toarray()
+        return design_matrix(t, self.knots_v, self.degree_v, self.periodic_v, self.poles.shape[1]).toarray()
 
     def grid(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """(len(u), len(v), 3) points on the parameter grid u x v."""
@@ -121,12 +119,6 @@ class BSplineSurface:
         }
 
 
-def _check_conditioning(matrix: np.ndarray, what: str) -> None:
-    cond = np.linalg.cond(matrix)
-    if not np.isfinite(cond) or cond > _MAX_CONDITION:
-        raise FitError(f"{what}: interpolation system is singular or ill-conditioned (condition number {cond:.3g})")
-
-
 def interpolate_periodic(values: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
     """Poles of the periodic cubic with uniform knots (n poles) through n values.
 
@@ -143,10 +135,9 @@ def interpolate_periodic(values: np.ndarray, params: np.ndarray | None = None) -
     steps = np.mod(np.diff(np.append(params, params[0])), 1.0)
     if np.any(params < 0) or np.any(params >= 1) or np.any(steps <= 0) or abs(steps.sum() - 1.0) > 1e-9:
         raise FitError("periodic interpolation parameters must lie in [0, 1) and go once round in order")
-    matrix = _design_matrix(params, periodic_knots(n), 3, True, n).toarray()
-    _check_conditioning(matrix, "periodic interpolation")
+    matrix = design_matrix(params, periodic_knots(n), 3, True, n).toarray()
     flat = values.reshape(n, -1)
-    return np.linalg.solve(matrix, flat).reshape(values.shape)
+    return solve_dense(matrix, flat, max_condition=_MAX_CONDITION, what="periodic interpolation").reshape(values.shape)
 
 
 def averaged_interpolation_knots(params: np.ndarray, degree: int = 3) -> np.ndarray:
@@ -166,7 +157,7 @@ def interpolate_clamped(values: np.ndarray, params: np.ndarray, degree: int = 3)
     if params.shape != (n,) or np.any(np.diff(params) <= 0) or params[0] != 0.0 or params[-1] != 1.0:
         raise FitError("clamped interpolation parameters must increase from 0 to 1, one per value")
     knots = averaged_interpolation_knots(params, degree)
-    matrix = _design_matrix(params, knots, degree, False, n).toarray()
-    _check_conditioning(matrix, "clamped interpolation")
+    matrix = design_matrix(params, knots, degree, False, n).toarray()
     flat = values.reshape(n, -1)
-    return np.linalg.solve(matrix, flat).reshape(values.shape), knots
+    poles = solve_dense(matrix, flat, max_condition=_MAX_CONDITION, what="clamped interpolation")
+    return poles.reshape(values.shape), knots

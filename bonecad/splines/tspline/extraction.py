@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from bonecad.errors import InputError
+from bonecad.splines.basis import find_span
 from bonecad.splines.tspline.basis import bezier_coefficients
 from bonecad.splines.tspline.tmesh import END_LINES, TMesh
 
@@ -82,14 +83,14 @@ class BezierExtraction:
         if s.shape != t.shape:
             raise InputError(f"s and t: expected equal lengths, got {s.size} and {t.size}")
         t = _clamp(t, *mesh.t_range, "t")
-        j = _cell(mesh.t_lines, t)
+        j = find_span(mesh.t_lines, t, END_LINES - 1)  # the end lines act as clamped knots
         if mesh.periodic:
             lo = mesh.s_lines[0]
             s = lo + np.mod(s - lo, mesh.s_period)
-            i = np.clip(np.searchsorted(mesh.s_lines, s, side="right") - 1, 0, len(mesh.s_lines) - 1)
+            i = np.clip(find_span(mesh.s_lines, s), 0, len(mesh.s_lines) - 1)
         else:
             s = _clamp(s, *mesh.s_range, "s")
-            i = _cell(mesh.s_lines, s)
+            i = find_span(mesh.s_lines, s, END_LINES - 1)
         e = self.cell_element[i, j]
         ds = s - self.s_bounds[e, 0]
         if mesh.periodic:
@@ -105,12 +106,6 @@ def _clamp(x: np.ndarray, lo: float, hi: float, name: str) -> np.ndarray:
     if bad.any():
         raise InputError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], e.g. {x[bad][0]}")
     return np.clip(x, lo, hi)
-
-
-def _cell(lines: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Cell index along a clamped direction; the far end belongs to the last cell."""
-    c = np.searchsorted(lines, x, side="right") - 1
-    return np.clip(c, END_LINES - 1, len(lines) - END_LINES - 1)
 
 
 def bezier_mesh_edges(mesh: TMesh) -> tuple[np.ndarray, np.ndarray]:

@@ -31,9 +31,9 @@ from typing import Literal, Sequence
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from bonecad.errors import InputError, KernelError
+from bonecad.splines.lsq import normal_equations, solve_spd
 from bonecad.splines.tspline.basis import split_coefficients
 from bonecad.splines.tspline.suitability import check_suitability
 from bonecad.splines.tspline.tmesh import END_LINES, TMesh
@@ -539,8 +539,7 @@ def remove_segments(ts: TSpline, segments: Sequence[KnotSegment], *, samples_per
     basis = shape.basis_matrix(s, t)  # polynomial blending functions (weights 1)
     old_shape = TSpline(mesh, np.zeros((ts.n_control, 3)), np.ones(ts.n_control))
     target = old_shape.basis_matrix(s, t) @ np.hstack([ts.control_points * ts.weights[:, None], ts.weights[:, None]])
-    normal = (basis.T @ basis).tocsc()
-    pw = np.column_stack([spla.spsolve(normal, basis.T @ target[:, c]) for c in range(4)])
+    pw = solve_spd(*normal_equations(basis, np.ones(len(s)), target))
     if np.any(pw[:, 3] <= 0):
         raise InputError("remove: the refitted weights are not all positive")
     new = TSpline(coarse, pw[:, :3] / pw[:, 3:], pw[:, 3])

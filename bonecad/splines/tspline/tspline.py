@@ -19,7 +19,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from bonecad.errors import InputError
-from bonecad.splines.tspline.basis import bernstein3, bspline5, knot_span
+from bonecad.splines.basis import bernstein3
+from bonecad.splines.tspline.basis import bspline5, knot_span
 from bonecad.splines.tspline.extraction import BezierExtraction, extract
 from bonecad.splines.tspline.tmesh import TMesh
 
