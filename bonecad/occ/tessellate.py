@@ -20,7 +20,8 @@ import numpy as np
 from bonecad.errors import InputError, KernelError
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.closest import vertex_normals
-from bonecad.splines.evaluate import SplineSurface, SurfaceSet, project, project_faces
+from bonecad.splines.evaluate import SplineSurface, SurfaceSet
+from bonecad.splines.project import project_faces
 from bonecad.splines.knots import breakpoints
 
 
@@ -271,7 +272,7 @@ def _native_to_spline_uv(face, surface: SplineSurface, uv: np.ndarray, nodes: np
             b[2] + (uv[:, 1] - v0) / max(v1 - v0, 1e-300) * (b[3] - b[2]),
         ]
     )
-    return project(surface, nodes, start).uv
+    return project_faces(SurfaceSet([surface]), np.zeros(len(nodes), dtype=np.int64), nodes, start).uv
 
 
 def is_natural(face, surface: SplineSurface) -> bool:

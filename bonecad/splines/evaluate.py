@@ -1,4 +1,4 @@
-"""Vectorised evaluation and point projection on one (rational) B-spline surface.
+"""Vectorised evaluation of (rational) B-spline surfaces, one or many at once.
 
 The deviation analysis refines distances on the exact surface of each CAD face
 (DESIGN.md: "exact point-to-surface projection wherever the tessellation error
@@ -7,8 +7,8 @@ the surface is copied once into numpy arrays (knots, homogeneous poles) and
 evaluated for all points at once.
 
 References: L. Piegl, W. Tiller, *The NURBS Book*, 2nd ed. (1997): A2.1 (span),
-A2.2/A2.3 (basis functions and derivatives), eq. 4.20 (rational derivatives);
-point inversion by Newton iteration, section 6.1.
+A2.2/A2.3 (basis functions and derivatives, :mod:`bonecad.splines.basis`), eq. 4.20
+(rational derivatives). Projection onto these surfaces: :mod:`bonecad.splines.project`.
 """
 from __future__ import annotations
 
@@ -65,50 +65,6 @@ def evaluate(
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
     return _Packed([surface]).evaluate(np.zeros(len(u), dtype=np.int64), u, v)
-
-
-@dataclass(frozen=True)
-class Projection:
-    """Foot points of a projection onto one surface (all arrays have N rows).
-
-    uv : (N, 2) parameters of the foot point
-    foot : (N, 3) mm, the surface point S(u, v)
-    normal : (N, 3) unit normal S_u x S_v (not yet oriented by the face)
-    residual_mm : (N,) tangential part of (point - foot): zero at an exact foot point
-    clamped : (N,) bool, the iteration hit the parameter bounds
-    """
-
-    uv: np.ndarray
-    foot: np.ndarray
-    normal: np.ndarray
-    residual_mm: np.ndarray
-    clamped: np.ndarray
-
-
-def project(
-    surface: SplineSurface,
-    points: np.ndarray,
-    uv_start: np.ndarray,
-    *,
-    max_iterations: int = 30,
-    tol_mm: float = 1e-7,
-    chunk: int = 65536,
-) -> Projection:
-    """Foot points of ``points`` (N, 3) on ``surface`` by Gauss-Newton from ``uv_start`` (N, 2).
-
-    Each step solves the 2x2 normal equations J^T J duv = J^T (p - S) with
-    J = [S_u S_v], then clamps to ``surface.bounds`` (or wraps round a closed
-    direction). Started near the foot point it converges to it at a rate of
-    about |distance| x curvature per step; points stop iterating once their
-    step moves the surface point less than ``tol_mm``. ``residual_mm`` tells
-    whether a point converged. A point clamped in two successive steps stops
-    there (its foot point lies beyond the face; one clamp may be an overshoot).
-    """
-    points = np.asarray(points, dtype=np.float64)
-    face = np.zeros(len(points), dtype=np.int64)
-    return project_faces(
-        SurfaceSet([surface]), face, points, uv_start, max_iterations=max_iterations, tol_mm=tol_mm, chunk=chunk
-    )
 
 
 class _Packed:
@@ -257,69 +213,3 @@ class SurfaceSet:
     def evaluate2(self, face: np.ndarray, u: np.ndarray, v: np.ndarray):
         """Points, first and second partials (S, S_u, S_v, S_uu, S_vv, S_uv; (N, 3) each) on faces ``face``."""
         return self._dispatch("evaluate2", 6, face, u, v)
-
-
-def project_faces(
-    surfaces: SurfaceSet,
-    face: np.ndarray,
-    points: np.ndarray,
-    uv_start: np.ndarray,
-    *,
-    max_iterations: int = 30,
-    tol_mm: float = 1e-7,
-    chunk: int = 65536,
-) -> Projection:
-    """Foot points of ``points`` (N, 3) on the surfaces of faces ``face`` (N,), from ``uv_start`` (N, 2).
-
-    The iteration of :func:`project`, for points on many faces at once.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    face = np.asarray(face, dtype=np.int64)
-    uv = np.array(uv_start, dtype=np.float64, copy=True)
-    lo_b = surfaces.bounds[face][:, [0, 2]]
-    hi_b = surfaces.bounds[face][:, [1, 3]]
-    closed = surfaces.closed[face]
-    clamped = np.zeros(len(points), dtype=bool)
-    for lo in range(0, len(points), chunk):
-        active = np.arange(lo, min(lo + chunk, len(points)))
-        was_clamped = np.zeros(len(active), dtype=bool)
-        for _ in range(max_iterations):
-            if len(active) == 0:
-                break
-            cur = uv[active]
-            s, su, sv = surfaces.evaluate(face[active], cur[:, 0], cur[:, 1])
-            r = points[active] - s
-            a = np.einsum("ij,ij->i", su, su)
-            b = np.einsum("ij,ij->i", su, sv)
-            c = np.einsum("ij,ij->i", sv, sv)
-            g1 = np.einsum("ij,ij->i", su, r)
-            g2 = np.einsum("ij,ij->i", sv, r)
-            det = a * c - b * b
-            ok = det > 1e-300
-            safe = np.where(ok, det, 1.0)
-            du = np.where(ok, (c * g1 - b * g2) / safe, 0.0)
-            dv = np.where(ok, (a * g2 - b * g1) / safe, 0.0)
-            nxt = cur + np.column_stack([du, dv])
-            lo_a, hi_a = lo_b[active], hi_b[active]
-            wrap = closed[active]
-            if wrap.any():
-                nxt = np.where(wrap, lo_a + np.mod(nxt - lo_a, hi_a - lo_a), nxt)
-            hit = np.any((nxt < lo_a) | (nxt > hi_a), axis=1)
-            uv[active] = np.clip(nxt, lo_a, hi_a)
-            clamped[active] = hit
-            step = np.sqrt(du * du * a + 2 * du * dv * b + dv * dv * c)  # |du S_u + dv S_v|
-            # a step past a bound is clamped and tried once more (an overshoot near the
-            # edge); clamped twice running, the foot point lies beyond the face
-            keep = (step > tol_mm) & ~(hit & was_clamped)
-            active, was_clamped = active[keep], hit[keep]
-    s = np.empty((len(points), 3))
-    n = np.empty((len(points), 3))
-    for lo in range(0, len(points), chunk):
-        sl = slice(lo, lo + chunk)
-        s[sl], su, sv = surfaces.evaluate(face[sl], uv[sl, 0], uv[sl, 1])
-        n[sl] = np.cross(su, sv)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    n = n / np.where(norm > 0, norm, 1.0)
-    r = points - s
-    tangential = r - np.einsum("ij,ij->i", r, n)[:, None] * n
-    return Projection(uv, s, n, np.linalg.norm(tangential, axis=1), clamped)
