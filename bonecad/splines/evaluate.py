@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.errors import InputError
 from bonecad.splines.basis import basis_functions, find_span
 
 
@@ -45,14 +44,14 @@ class SplineSurface:
     def __post_init__(self) -> None:
         nu, nv = self.poles_w.shape[:2]
         if self.poles_w.ndim != 3 or self.poles_w.shape[2] != 4:
-            raise InputError(f"poles_w must be (nu, nv, 4), got {self.poles_w.shape}")
+            raise ValueError(f"poles_w must be (nu, nv, 4), got {self.poles_w.shape}")
         if len(self.knots_u) != nu + self.degree_u + 1:
-            raise InputError(
+            raise ValueError(
                 f"knots_u has {len(self.knots_u)} entries, expected nu + degree_u + 1 = "
                 f"{nu + self.degree_u + 1}"
             )
         if len(self.knots_v) != nv + self.degree_v + 1:
-            raise InputError(
+            raise ValueError(
                 f"knots_v has {len(self.knots_v)} entries, expected nv + degree_v + 1 = "
                 f"{nv + self.degree_v + 1}"
             )
@@ -196,7 +195,7 @@ class SurfaceSet:
         v = np.asarray(v, dtype=np.float64)
         group = self.group[face]
         if (group < 0).any():
-            raise InputError("cannot evaluate faces without a spline surface")
+            raise ValueError("cannot evaluate faces without a spline surface")
         out = [np.empty((len(face), 3)) for _ in range(count)]
         for g, pack in enumerate(self._packs):
             sel = np.arange(len(face)) if len(self._packs) == 1 else np.flatnonzero(group == g)

@@ -18,7 +18,7 @@ from bonecad.splines.basis import design_matrix
 from bonecad.splines.curve import BSplineCurve
 from bonecad.splines.knots import periodic_knots
 from bonecad.splines.lsq import solve_dense
-from bonecad.errors import FitError, InputError
+from bonecad.errors import FitError
 
 #: Largest condition number accepted for an interpolation system.
 _MAX_CONDITION = 1e8
@@ -48,7 +48,7 @@ class BSplineSurface:
     def __post_init__(self) -> None:
         poles = np.array(self.poles, dtype=np.float64)  # defensive copy
         if poles.ndim != 3 or poles.shape[2] != 3:
-            raise InputError(f"poles must be (nu, nv, 3), got {poles.shape}")
+            raise ValueError(f"poles must be (nu, nv, 3), got {poles.shape}")
         object.__setattr__(self, "poles", poles)
         for name, n, degree, periodic in (
             ("knots_u", poles.shape[0], self.degree_u, self.periodic_u),
@@ -57,9 +57,9 @@ class BSplineSurface:
             knots = np.array(getattr(self, name), dtype=np.float64)
             expected = n + 1 if periodic else n + degree + 1
             if len(knots) != expected:
-                raise InputError(f"{name} has {len(knots)} entries, expected {expected} for {n} poles of degree {degree}")
+                raise ValueError(f"{name} has {len(knots)} entries, expected {expected} for {n} poles of degree {degree}")
             if periodic and not np.allclose(knots, periodic_knots(n), atol=1e-12):
-                raise InputError(f"{name}: a periodic direction needs uniform knots on [0, 1]")
+                raise ValueError(f"{name}: a periodic direction needs uniform knots on [0, 1]")
             object.__setattr__(self, name, knots)
 
     @property
@@ -104,7 +104,7 @@ class BSplineSurface:
     def reversed_v(self) -> "BSplineSurface":
         """The same point set with v -> 1 - v (normal flipped). Clamped v only."""
         if self.periodic_v:
-            raise InputError("reversed_v: only a clamped v direction can be reversed")
+            raise ValueError("reversed_v: only a clamped v direction can be reversed")
         return BSplineSurface(self.poles[:, ::-1], self.knots_u, (1.0 - self.knots_v)[::-1], self.degree_u,
                               self.degree_v, self.periodic_u, self.periodic_v, self.region, self.reversed)
 
@@ -131,7 +131,7 @@ def interpolate_periodic(values: np.ndarray, params: np.ndarray | None = None) -
     n = len(values)
     params = np.arange(n) / n if params is None else np.asarray(params, dtype=np.float64)
     if params.shape != (n,):
-        raise InputError(f"need one parameter per value: {params.shape} parameters, {n} values")
+        raise ValueError(f"need one parameter per value: {params.shape} parameters, {n} values")
     steps = np.mod(np.diff(np.append(params, params[0])), 1.0)
     if np.any(params < 0) or np.any(params >= 1) or np.any(steps <= 0) or abs(steps.sum() - 1.0) > 1e-9:
         raise FitError("periodic interpolation parameters must lie in [0, 1) and go once round in order")

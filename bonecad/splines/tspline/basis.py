@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bonecad.splines.basis import bernstein3, find_span
+from bonecad.splines.basis import find_span
 
 
 def _inv(d: np.ndarray) -> np.ndarray:

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from bonecad.errors import InputError
 from bonecad.splines.basis import find_span
 from bonecad.splines.tspline.basis import bezier_coefficients
 from bonecad.splines.tspline.tmesh import END_LINES, TMesh
@@ -74,14 +73,14 @@ class BezierExtraction:
         """Element and local Bezier coordinates of parameter points.
 
         s, t : (n,) float. s wraps when periodic; points outside the
-        parameter range by more than 1e-9 of its size raise InputError.
+        parameter range by more than 1e-9 of its size raise ValueError.
         Returns (element (n,) int, u (n,) float in [0, 1], v (n,) float in [0, 1]).
         """
         mesh = self.mesh
         s = np.asarray(s, dtype=np.float64).ravel()
         t = np.asarray(t, dtype=np.float64).ravel()
         if s.shape != t.shape:
-            raise InputError(f"s and t: expected equal lengths, got {s.size} and {t.size}")
+            raise ValueError(f"s and t: expected equal lengths, got {s.size} and {t.size}")
         t = _clamp(t, *mesh.t_range, "t")
         j = find_span(mesh.t_lines, t, END_LINES - 1)  # the end lines act as clamped knots
         if mesh.periodic:
@@ -104,7 +103,7 @@ def _clamp(x: np.ndarray, lo: float, hi: float, name: str) -> np.ndarray:
     tol = 1e-9 * max(hi - lo, 1.0)
     bad = (x < lo - tol) | (x > hi + tol) | ~np.isfinite(x)
     if bad.any():
-        raise InputError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], e.g. {x[bad][0]}")
+        raise ValueError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], e.g. {x[bad][0]}")
     return np.clip(x, lo, hi)
 
 
@@ -190,7 +189,7 @@ def extract(mesh: TMesh) -> BezierExtraction:
     n_e = len(keys)
     area = (i1 - i0) * (j1 - j0)
     if np.any(np.bincount(cell_e, minlength=n_e) != area):
-        raise InputError("invalid T-mesh: its Bezier mesh has non-rectangular faces")
+        raise ValueError("invalid T-mesh: its Bezier mesh has non-rectangular faces")
     index_bounds = np.stack([i0, i1, j0, j1], axis=1)
     s_bounds = np.stack([mesh.s_value(i0), mesh.s_value(i1)], axis=1)
     t_bounds = np.stack([mesh.t_lines[j0], mesh.t_lines[j1]], axis=1)

@@ -35,7 +35,6 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from bonecad.errors import FitError, InputError
 from bonecad.splines.tspline import BezierExtraction, KnotSegment, TSpline, insert_segments, refine_elements
 from bonecad.splines.basis import bernstein3
 from bonecad.splines.lsq import normal_equations, solve_spd
@@ -342,9 +341,9 @@ def solve_control_points(
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     if points.shape != (n, 3) or np.shape(s) != (n,) or np.shape(t) != (n,):
-        raise InputError(f"points, s, t: expected (n, 3), (n,), (n,), got {points.shape}, {np.shape(s)}, {np.shape(t)}")
+        raise ValueError(f"points, s, t: expected (n, 3), (n,), (n,), got {points.shape}, {np.shape(s)}, {np.shape(t)}")
     if np.abs(ts.weights - 1.0).max() > 1e-9:
-        raise InputError("solve_control_points: expected a polynomial T-spline (weights 1)")
+        raise ValueError("solve_control_points: expected a polynomial T-spline (weights 1)")
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
     w = w / w.sum()
     ext = ts.extraction
@@ -559,7 +558,7 @@ def fit_adaptive(
     """
     tol = tolerances or FitTolerances()
     if mode not in ("local", "global"):
-        raise InputError(f"mode: expected 'local' or 'global', got {mode!r}")
+        raise ValueError(f"mode: expected 'local' or 'global', got {mode!r}")
     points = np.asarray(points, dtype=np.float64)
     w = np.ones(len(points)) if weights is None else np.asarray(weights, dtype=np.float64)
     if s is None or t is None:
