@@ -15,7 +15,8 @@ from bonecad.nurbs_model import FACE_NAMES, build_nurbs
 from bonecad.splines.surface import BSplineSurface
 from bonecad.occ import brep
 from bonecad.occ import surfaces as occ
-from bonecad.splines.surface import interpolate_clamped, interpolate_periodic, periodic_knots
+from bonecad.splines.knots import periodic_knots
+from bonecad.splines.surface import interpolate_clamped, interpolate_periodic
 
 from .conftest import real_mesh_params
 from tests.defaults import SETTINGS, TESSELLATION, BANDS_MM

@@ -189,27 +189,27 @@ def test_invalid_meshes_are_rejected_with_clear_errors():
     s_e, t_e = mesh.s_edges.copy(), mesh.t_edges.copy()
     s_e[j, i - 1 : i + 1] = False
     t_e[i, j - 1] = False
-    with pytest.raises(InputError, match="ends in the open"):
+    with pytest.raises(ValueError, match="ends in the open"):
         mesh.with_edges(s_e, t_e)
     s_e, t_e = mesh.s_edges.copy(), mesh.t_edges.copy()
     s_e[j, i] = False
     t_e[i, j] = False
-    with pytest.raises(InputError, match="L-shaped corner"):
+    with pytest.raises(ValueError, match="L-shaped corner"):
         mesh.with_edges(s_e, t_e)
     t_e = mesh.t_edges.copy()
     t_e[i, j : mesh.shape[1] - 4] = False  # the line stops, its end-strip part stays
-    with pytest.raises(InputError, match="end strip"):
+    with pytest.raises(ValueError, match="end strip"):
         mesh.with_edges(mesh.s_edges, t_e)
-    with pytest.raises(InputError, match="increase strictly"):
+    with pytest.raises(ValueError, match="increase strictly"):
         TMesh.grid([0.0, 2.0, 1.0, 3.0], [0.0, 1.0])
-    with pytest.raises(InputError, match="at least 4"):
+    with pytest.raises(ValueError, match="at least 4"):
         TMesh.grid([0.0, 1.0, 2.0], [0.0, 1.0], s_period=3.0)
-    with pytest.raises(InputError, match=r"expected \(12, 4, 3\)"):
+    with pytest.raises(ValueError, match=r"expected \(12, 4, 3\)"):
         TSpline.from_grid(np.arange(12.0), [0.0, 1.0], np.zeros((12, 5, 3)), s_period=12.0)
     ts = tube()
-    with pytest.raises(InputError, match="weights"):
+    with pytest.raises(ValueError, match="weights"):
         TSpline(ts.mesh, ts.control_points, -ts.weights)
-    with pytest.raises(InputError, match="outside the parameter range"):
+    with pytest.raises(ValueError, match="outside the parameter range"):
         ts.evaluate([0.0], [ts.mesh.t_range[1] + 1.0])
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from bonecad.errors import InputError
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.closest import TriangleLocator, vertex_normals
-from bonecad.splines.evaluate import project_faces
+from bonecad.splines.project import project_faces
 from bonecad.analysis.statistics import DeviationStats, Histogram, deviation_stats, histogram, share_within
 from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
 

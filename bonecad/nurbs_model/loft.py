@@ -24,20 +24,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from bonecad.splines.curve import (
-    BSplineCurve,
-    _design_matrix,
-    _fairness,
-    _solve,
-    _solve_tangent_distance,
-    densified,
-    project_parameters,
-)
+from bonecad.splines.curve import BSplineCurve, densified, fit_curve
 from bonecad.contours.curves import ContourCurve, ContourSet
 from bonecad.errors import FitError
-from bonecad.splines.surface import BSplineSurface, interpolate_clamped, interpolate_periodic, periodic_knots
+from bonecad.splines.knots import periodic_knots
+from bonecad.splines.project import project_to_curve
+from bonecad.splines.surface import BSplineSurface, interpolate_clamped, interpolate_periodic
 
 
 @dataclass(frozen=True)
@@ -62,13 +55,6 @@ def common_knots(curves: list[BSplineCurve]) -> np.ndarray:
     return np.mean([c.knots for c in curves], axis=0)
 
 
-def _parameters_on(curve: BSplineCurve, points: np.ndarray, samples: int = 2000) -> np.ndarray:
-    """Foot-point parameters of ``points`` on ``curve`` (nearest dense sample, then Newton)."""
-    s = np.linspace(0.0, 1.0, samples, endpoint=not curve.periodic)
-    _, nearest = cKDTree(curve(s)).query(points)
-    return project_parameters(curve, points, s[nearest])
-
-
 def refit_to_knots(
     contour: ContourCurve,
     knots: np.ndarray,
@@ -81,43 +67,19 @@ def refit_to_knots(
 
     Raw points farther than max(``bridged_mm``, 2 x its max deviation) from the
     original curve are the artefact peaks its fit bridged: they stay out. The
-    fit alternates point-distance solves with parameter correction, then takes
-    tangent-distance steps (as :func:`bonecad.splines.curve.fit_curve`), kept if
-    they help. Returns (curve, max deviation, RMS deviation, points left out).
+    fit (:func:`bonecad.splines.curve.fit_curve`) alternates point-distance solves
+    with parameter correction, then takes tangent-distance steps, kept if they
+    help. Returns (curve, max deviation, RMS deviation, points left out).
     """
     original = contour.curve
-    count, degree = original.count, original.degree
-    points = densified(np.asarray(contour.raw_points, dtype=np.float64), 4 * count, closed=False)
-    u = _parameters_on(original, points)
+    points = densified(np.asarray(contour.raw_points, dtype=np.float64), 4 * original.count, closed=False)
+    u = project_to_curve(original, points)
     u[0], u[-1] = 0.0, 1.0
     keep = np.linalg.norm(original(u) - points, axis=1) <= max(bridged_mm, 2.0 * contour.max_deviation_mm)
     keep[[0, -1]] = True
-    points, u = points[keep], u[keep]
-    weights = np.ones(len(points))
-    weights[[0, -1]] = 1e8
-    fair = fairness * (len(points) / count) * _fairness(count, False)
-
-    def residual(curve, u):
-        return np.linalg.norm(curve(u) - points, axis=1)
-
-    for _ in range(corrections + 1):
-        curve = BSplineCurve(_solve(_design_matrix(u, knots, degree, False, count), points, weights, fair), knots, degree)
-        u = project_parameters(curve, points, u)
-        u[0], u[-1] = 0.0, 1.0
-    best = (float(residual(curve, u).max()), curve, u)
-    for _ in range(3):
-        tangents = curve(u, 1)
-        tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
-        a = _design_matrix(u, knots, degree, False, count)
-        curve = BSplineCurve(_solve_tangent_distance(a, points, tangents, weights, fair), knots, degree)
-        u = project_parameters(curve, points, u)
-        u[0], u[-1] = 0.0, 1.0
-        worst = float(residual(curve, u).max())
-        if worst < best[0]:
-            best = (worst, curve, u)
-    worst, curve, u = best
-    res = residual(curve, u)
-    return curve, worst, float(np.sqrt(np.mean(res**2))), int((~keep).sum())
+    fit = fit_curve(points[keep], knots=knots, params=u[keep], periodic=False, degree=original.degree,
+                    corrections=corrections, tangent_pin_weight=1e8, outlier_mm=None, fairness=fairness)
+    return fit.curve, fit.max_deviation_mm, fit.rms_deviation_mm, int((~keep).sum())
 
 
 def compatible_curves(contours: tuple[ContourCurve, ...], region: str) -> tuple[list[BSplineCurve], RefitReport]:
@@ -197,20 +159,14 @@ def refit_section(
     original = contour.curve
     count = original.count
     points = densified(np.asarray(contour.raw_points, dtype=np.float64), 4 * count, closed=True)
-    u_orig = _parameters_on(original, points)
+    u_orig = project_to_curve(original, points)
     keep = np.linalg.norm(original(u_orig) - points, axis=1) <= max(0.5, 2.0 * contour.max_deviation_mm)
     points = points[keep]
-    u = mapping.parameters(points)
-    knots = periodic_knots(count)
-    weights = np.ones(len(points))
-    fair = fairness * (len(points) / count) * _fairness(count, True)
-    a = _design_matrix(u, knots, 3, True, count)
-    curve = BSplineCurve(_solve(a, points, weights, fair), knots, 3, True)
-    for _ in range(2):  # tangent-distance steps: errors across the curve count, sliding along it barely
-        tangents = curve(u, 1)
-        tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
-        curve = BSplineCurve(_solve_tangent_distance(a, points, tangents, weights, fair), knots, 3, True)
-    foot = _parameters_on(curve, points)  # not from u: Newton from the mapped parameters can jump
+    # tangent-distance steps: errors across the curve count, sliding along it barely
+    curve = fit_curve(points, knots=periodic_knots(count), params=mapping.parameters(points), periodic=True,
+                      correct_parameters=False, tangent_steps=2, pin_ends=False, outlier_mm=None,
+                      fairness=fairness).curve
+    foot = project_to_curve(curve, points)  # not from u: Newton from the mapped parameters can jump
     distance = np.linalg.norm(curve(foot) - points, axis=1)
     return curve, float(distance.max()), float(np.sqrt(np.mean(distance**2)))
 
@@ -274,7 +230,7 @@ class BoneSurfaces:
 def _curve_distance(a: BSplineCurve, b: BSplineCurve, samples: int = 400) -> float:
     """Largest distance from samples of ``a`` to ``b`` (foot points by projection)."""
     pts = a(np.linspace(0.0, 1.0, samples, endpoint=False))
-    u = _parameters_on(b, pts)
+    u = project_to_curve(b, pts)
     return float(np.linalg.norm(b(u) - pts, axis=1).max())
 
 

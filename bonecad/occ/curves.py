@@ -5,11 +5,7 @@ import numpy as np
 
 from bonecad.errors import KernelError
 from bonecad.splines.curve import BSplineCurve
-
-
-def _knots_and_multiplicities(knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    values, counts = np.unique(np.round(knots, 14), return_counts=True)
-    return values, counts
+from bonecad.splines.knots import multiplicities
 
 
 def to_geom_curve(curve: BSplineCurve):
@@ -27,7 +23,7 @@ def to_geom_curve(curve: BSplineCurve):
         values = np.asarray(curve.knots, dtype=np.float64)
         counts = np.ones(len(values), dtype=int)
     else:
-        values, counts = _knots_and_multiplicities(curve.knots)
+        values, counts = multiplicities(curve.knots)
     knots = array1([float(v) for v in values], TColStd_Array1OfReal)
     mults = array1([int(m) for m in counts], TColStd_Array1OfInteger)
     try:

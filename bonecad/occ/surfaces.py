@@ -19,12 +19,13 @@ from OCP.TopoDS import TopoDS_Face, TopoDS_Shape
 from bonecad.splines.curve import BSplineCurve
 from bonecad.errors import FitError, KernelError
 from bonecad.occ.brep import array1, edges, pole_grid
+from bonecad.splines.knots import full_sequence, multiplicities
 from bonecad.splines.surface import BSplineSurface
 
 def _knots_and_mults(knots: np.ndarray, periodic: bool) -> tuple[list[float], list[int]]:
     if periodic:
         return [float(k) for k in knots], [1] * len(knots)
-    values, counts = np.unique(np.round(knots, 14), return_counts=True)
+    values, counts = multiplicities(knots)
     return [float(v) for v in values], [int(c) for c in counts]
 
 
@@ -60,8 +61,8 @@ def from_geom_surface(geom: Geom_BSplineSurface, region: str, *, reversed_: bool
                        for b in range(1, nv + 1)] for a in range(1, nu + 1)])
 
     def full(knots, mults, count):
-        seq = np.repeat([knots.Value(i) for i in range(1, knots.Length() + 1)],
-                        [mults.Value(i) for i in range(1, mults.Length() + 1)])
+        seq = full_sequence([knots.Value(i) for i in range(1, knots.Length() + 1)],
+                            [mults.Value(i) for i in range(1, mults.Length() + 1)])
         return (seq - seq[0]) / (seq[-1] - seq[0])
 
     return BSplineSurface(poles, full(geom.UKnots(), geom.UMultiplicities(), nu),

@@ -20,7 +20,9 @@ import numpy as np
 from bonecad.errors import InputError, KernelError
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.closest import vertex_normals
-from bonecad.splines.evaluate import SplineSurface, SurfaceSet, project, project_faces
+from bonecad.splines.evaluate import SplineSurface, SurfaceSet
+from bonecad.splines.project import project_faces
+from bonecad.splines.knots import breakpoints
 
 
 @dataclass(frozen=True)
@@ -264,7 +266,7 @@ def _native_to_spline_uv(face, surface: SplineSurface, uv: np.ndarray, nodes: np
             b[2] + (uv[:, 1] - v0) / max(v1 - v0, 1e-300) * (b[3] - b[2]),
         ]
     )
-    return project(surface, nodes, start).uv
+    return project_faces(SurfaceSet([surface]), np.zeros(len(nodes), dtype=np.int64), nodes, start).uv
 
 
 def is_natural(face, surface: SplineSurface) -> bool:
@@ -308,11 +310,6 @@ def is_natural(face, surface: SplineSurface) -> bool:
             return False
         explorer.Next()
     return True
-
-
-def _breaks(knots: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    inner = np.unique(knots[(knots > lo) & (knots < hi)])
-    return np.concatenate([[lo], inner, [hi]])
 
 
 #: samples per knot span and cross lines per face used to size a grid
@@ -393,7 +390,7 @@ def _grid_tessellation(sset: SurfaceSet, faces: list[int], reversed_faces: np.nd
     for f in faces:
         s = sset.surfaces[f]
         u0, u1, v0, v1 = s.bounds
-        breaks.append((_breaks(s.knots_u, u0, u1), _breaks(s.knots_v, v0, v1)))
+        breaks.append((breakpoints(s.knots_u, u0, u1), breakpoints(s.knots_v, v0, v1)))
     counts_u, counts_v = _grid_counts(sset, faces, breaks, settings, factor)
     grids = [(_subdivide(bu, cu), _subdivide(bv, cv)) for (bu, bv), cu, cv in zip(breaks, counts_u, counts_v)]
     # faces with the same grid size share one index pattern: build them together

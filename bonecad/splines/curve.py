@@ -1,4 +1,4 @@
-"""Cubic B-spline curves in numpy: evaluation, least-squares fitting, point projection.
+"""Cubic B-spline curves in numpy: evaluation and least-squares fitting (projection: splines/project.py).
 
 Open curves are clamped (end points interpolated); closed curves are periodic
 with uniform knots (C2 everywhere, no seam: DESIGN.md warns that OpenCascade's
@@ -16,6 +16,10 @@ from scipy import sparse
 from scipy.interpolate import BSpline
 
 from bonecad.errors import FitError
+from bonecad.splines.basis import design_matrix
+from bonecad.splines.knots import periodic_knots, unclamped_periodic, wrapped_poles
+from bonecad.splines.lsq import normal_equations, solve_dense
+from bonecad.splines.project import project_to_curve
 
 
 @dataclass(frozen=True)
@@ -36,8 +40,8 @@ class BSplineCurve:
     def _spline(self) -> BSpline:
         if not self.periodic:
             return BSpline(self.knots, self.control_points, self.degree)
-        t, c = _periodic_extension(self.control_points, self.degree)
-        return BSpline(t, c, self.degree, extrapolate="periodic")
+        t = unclamped_periodic(self.count, self.degree)
+        return BSpline(t, wrapped_poles(self.control_points, self.degree), self.degree, extrapolate="periodic")
 
     def __call__(self, u: np.ndarray, nu: int = 0) -> np.ndarray:
         """(m, 3) points (or derivatives of order ``nu``) at parameters ``u`` in [0, 1]."""
@@ -53,14 +57,6 @@ class BSplineCurve:
     def transformed(self, matrix: np.ndarray, offset: np.ndarray) -> "BSplineCurve":
         """The same curve under the affine map x -> x @ matrix + offset (exact for B-splines)."""
         return BSplineCurve(self.control_points @ matrix + offset, self.knots, self.degree, self.periodic)
-
-
-def _periodic_extension(control_points: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unclamped knots and wrapped coefficients representing the periodic curve on [0, 1]."""
-    n = len(control_points)
-    t = (np.arange(-degree, n + degree + 1, dtype=np.float64)) / n
-    c = np.vstack([control_points, control_points[:degree]])
-    return t, c
 
 
 def centripetal_parameters(points: np.ndarray, closed: bool) -> np.ndarray:
@@ -88,14 +84,6 @@ def averaged_knots(u: np.ndarray, count: int, degree: int) -> np.ndarray:
     return np.concatenate([np.zeros(degree + 1), interior, np.ones(degree + 1)])
 
 
-def _design_matrix(u: np.ndarray, knots: np.ndarray, degree: int, periodic: bool, count: int) -> sparse.csr_matrix:
-    if not periodic:
-        return BSpline.design_matrix(u, knots, degree).tocsr()
-    t, _ = _periodic_extension(np.zeros((count, 3)), degree)
-    full = BSpline.design_matrix(np.mod(u, 1.0), t, degree).tocoo()
-    return sparse.csr_matrix((full.data, (full.row, full.col % count)), shape=(len(u), count))
-
-
 def _fairness(count: int, periodic: bool) -> sparse.csr_matrix:
     """D^T D for the second differences of the control polygon (wrapping round when periodic)."""
     if periodic:
@@ -109,9 +97,7 @@ def _fairness(count: int, periodic: bool) -> sparse.csr_matrix:
 def _solve(a: sparse.csr_matrix, points: np.ndarray, weights: np.ndarray, fairness: sparse.csr_matrix) -> np.ndarray:
     """Weighted least squares with fairness: (A^T W A + F) P = A^T W X. Dense: a curve has at most a
     few hundred control points, where scipy.sparse's set-up costs more than the whole dense solve."""
-    dense = a.toarray()
-    aw = dense * weights[:, None]
-    return np.linalg.solve(aw.T @ dense + fairness.toarray(), aw.T @ points)
+    return solve_dense(*normal_equations(a.toarray(), weights, points, fairness.toarray()))
 
 
 def _solve_tangent_distance(
@@ -147,21 +133,7 @@ def _solve_tangent_distance(
     mx = np.einsum("irc,ic->ir", metric, points)
     rhs = np.zeros((n, 3))
     np.add.at(rhs, cols.ravel(), (vals[:, :, None] * mx[:, None, :]).reshape(-1, 3))
-    return np.linalg.solve(system, rhs.ravel()).reshape(n, 3)
-
-
-def project_parameters(curve: BSplineCurve, points: np.ndarray, u: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """Newton steps moving each ``u`` to the foot of the perpendicular from its point (vectorised)."""
-    u = u.copy()
-    for _ in range(iterations):
-        c0, c1, c2 = curve(u), curve(u, 1), curve(u, 2)
-        diff = c0 - points
-        num = np.einsum("ij,ij->i", diff, c1)
-        den = np.einsum("ij,ij->i", c1, c1) + np.einsum("ij,ij->i", diff, c2)
-        step = np.where(np.abs(den) > 1e-12, num / np.where(den == 0, 1.0, den), 0.0)
-        u = u - step
-        u = np.mod(u, 1.0) if curve.periodic else np.clip(u, 0.0, 1.0)
-    return u
+    return solve_dense(system, rhs.ravel()).reshape(n, 3)
 
 
 def densified(points: np.ndarray, minimum: int, closed: bool) -> np.ndarray:
@@ -195,32 +167,69 @@ class CurveFit:
 
 def fit_curve(
     points: np.ndarray,
-    count: int,
+    count: int | None = None,
     *,
     periodic: bool,
+    knots: np.ndarray | None = None,
+    params: np.ndarray | None = None,
     degree: int = 3,
     corrections: int = 4,
-    outlier_mm: float = 1.0,
+    correct_parameters: bool = True,
+    tangent_steps: int = 3,
+    pin_ends: bool = True,
+    tangent_pin_weight: float = 1e6,
+    outlier_mm: float | None = 1.0,
     fairness: float = 1e-4,
 ) -> CurveFit:
-    """Least-squares B-spline with ``count`` control points through ``points`` (m, 3).
+    """Least-squares B-spline with ``count`` control points (or on ``knots``) through ``points`` (m, 3).
 
-    Open curves interpolate their end points. Points farther than
-    ``outlier_mm`` and 6 robust standard deviations from a first fit (peaks
-    from holes and artefacts) are dropped and the curve refitted, bridging
-    them smoothly; the number dropped is reported. A light second-difference
-    fairness term (``fairness`` times the mean number of points per control
-    point) keeps spans without data (bridged gaps) well posed.
+    The fit alternates point-distance solves with parameter correction
+    (``corrections`` projections of the points onto the curve; NURBS Book
+    9.4.1), then takes ``tangent_steps`` tangent-distance steps, each kept
+    only if it lowers the largest distance. params : (m,) starting parameters
+    (default centripetal); knots : default averaged (open, eq. 9.68-9.69) or
+    uniform (periodic); without ``params``, too few points are first densified
+    (:func:`densified`). With ``correct_parameters`` False the parameters stay
+    as given: one solve, and every tangent step is kept.
+    pin_ends : open curves interpolate their end points, closed ones their
+    start point (u = 0), with weight 1e8 in the point-distance solves and
+    ``tangent_pin_weight`` in the tangent steps. Points farther than
+    ``outlier_mm`` and 6 robust standard deviations from a fit (peaks from
+    holes and artefacts; None: no outlier test) are dropped and the curve
+    refitted, bridging them smoothly (up to two rounds); the number dropped
+    is reported. A light second-difference fairness term (``fairness`` times
+    the mean number of points per control point) keeps spans without data
+    (bridged gaps) well posed.
     """
-    points = densified(np.asarray(points, dtype=np.float64), 4 * count, closed=periodic)
-    # Open curves interpolate both end points; closed ones their start point
-    # (u = 0), which lines the sections up with curve 0 of the end regions.
-    pinned = [0] if periodic else [0, -1]
+    if count is None:
+        if knots is None:
+            raise ValueError("fit_curve: give the control-point count or the knots")
+        count = len(knots) - 1 if periodic else len(knots) - degree - 1
+    points = np.asarray(points, dtype=np.float64)
+    if params is None:
+        points = densified(points, 4 * count, closed=periodic)
+    elif len(params) != len(points):
+        raise ValueError(f"fit_curve: {len(params)} parameters for {len(points)} points")
+    pinned = ([0] if periodic else [0, -1]) if pin_ends else []
     reset = (0.0,) if periodic else (0.0, 1.0)
     dropped = 0
-    for round_ in range(3):
-        curve, u, fair, knots = _point_distance_fit(points, count, degree, periodic, corrections, fairness, pinned, reset)
+    for round_ in range(3 if outlier_mm is not None else 1):
+        u = centripetal_parameters(points, closed=periodic) if params is None else np.array(params, dtype=np.float64)
+        fit_knots = knots
+        if fit_knots is None:
+            fit_knots = periodic_knots(count) if periodic else averaged_knots(u, count, degree)
+        weights = np.ones(len(points))
+        weights[pinned] = 1e8
+        fair = fairness * (len(points) / count) * _fairness(count, periodic)
+        for _ in range(corrections + 1 if correct_parameters else 1):
+            a = design_matrix(u, fit_knots, degree, periodic, count)
+            curve = BSplineCurve(_solve(a, points, weights, fair), fit_knots, degree, periodic)
+            if correct_parameters:
+                u = project_to_curve(curve, points, u)
+                u[pinned] = reset[: len(pinned)]
         residual = np.linalg.norm(curve(u) - points, axis=1)
+        if outlier_mm is None:
+            break
         med = np.median(residual)
         mad = 1.4826 * np.median(np.abs(residual - med))
         outlier = residual > max(outlier_mm, med + 6.0 * mad)
@@ -229,20 +238,21 @@ def fit_curve(
             break
         # Drop the peaks and fit the rest afresh: new parameters bridge the gap smoothly.
         points = points[~outlier]
+        params = None if params is None else params[~outlier]
         dropped += int(outlier.sum())
     weights = np.ones(len(points))
-    weights[pinned] = 1e6
-    # Then tangent-distance steps, kept only if they help.
+    weights[pinned] = tangent_pin_weight
     best = (float(residual.max()), curve, u)
-    for _ in range(3):
+    for _ in range(tangent_steps):
         tangents = curve(u, 1)
         tangents /= np.maximum(np.linalg.norm(tangents, axis=1, keepdims=True), 1e-300)
-        a = _design_matrix(u, knots, degree, periodic, count)
-        curve = BSplineCurve(_solve_tangent_distance(a, points, tangents, weights, fair), knots, degree, periodic)
-        u = project_parameters(curve, points, u)
-        u[pinned] = reset
+        a = design_matrix(u, fit_knots, degree, periodic, count)
+        curve = BSplineCurve(_solve_tangent_distance(a, points, tangents, weights, fair), fit_knots, degree, periodic)
+        if correct_parameters:
+            u = project_to_curve(curve, points, u)
+            u[pinned] = reset[: len(pinned)]
         worst = float(np.linalg.norm(curve(u) - points, axis=1).max())
-        if worst < best[0]:
+        if worst < best[0] or not correct_parameters:
             best = (worst, curve, u)
     worst, curve, u = best
     residual = np.linalg.norm(curve(u) - points, axis=1)
@@ -253,18 +263,3 @@ def fit_curve(
         parameters=u,
         outliers=dropped,
     )
-
-
-def _point_distance_fit(points, count, degree, periodic, corrections, fairness, pinned, reset):
-    """Least squares on point distances with parameter correction (NURBS Book 9.4.1, then projection)."""
-    u = centripetal_parameters(points, closed=periodic)
-    knots = np.linspace(0.0, 1.0, count + 1) if periodic else averaged_knots(u, count, degree)
-    weights = np.ones(len(points))
-    weights[pinned] = 1e8
-    fair = fairness * (len(points) / count) * _fairness(count, periodic)
-    for _ in range(corrections + 1):
-        a = _design_matrix(u, knots, degree, periodic, count)
-        curve = BSplineCurve(_solve(a, points, weights, fair), knots, degree, periodic)
-        u = project_parameters(curve, points, u)
-        u[pinned] = reset
-    return curve, u, fair, knots

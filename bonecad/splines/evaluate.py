@@ -1,4 +1,4 @@
-"""Vectorised evaluation and point projection on one (rational) B-spline surface.
+"""Vectorised evaluation of (rational) B-spline surfaces, one or many at once.
 
 The deviation analysis refines distances on the exact surface of each CAD face
 (DESIGN.md: "exact point-to-surface projection wherever the tessellation error
@@ -7,8 +7,8 @@ the surface is copied once into numpy arrays (knots, homogeneous poles) and
 evaluated for all points at once.
 
 References: L. Piegl, W. Tiller, *The NURBS Book*, 2nd ed. (1997): A2.1 (span),
-A2.2/A2.3 (basis functions and derivatives), eq. 4.20 (rational derivatives);
-point inversion by Newton iteration, section 6.1.
+A2.2/A2.3 (basis functions and derivatives, :mod:`bonecad.splines.basis`), eq. 4.20
+(rational derivatives). Projection onto these surfaces: :mod:`bonecad.splines.project`.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.errors import InputError
+from bonecad.splines.basis import basis_functions, find_span
 
 
 @dataclass(frozen=True)
@@ -44,38 +44,17 @@ class SplineSurface:
     def __post_init__(self) -> None:
         nu, nv = self.poles_w.shape[:2]
         if self.poles_w.ndim != 3 or self.poles_w.shape[2] != 4:
-            raise InputError(f"poles_w must be (nu, nv, 4), got {self.poles_w.shape}")
+            raise ValueError(f"poles_w must be (nu, nv, 4), got {self.poles_w.shape}")
         if len(self.knots_u) != nu + self.degree_u + 1:
-            raise InputError(
+            raise ValueError(
                 f"knots_u has {len(self.knots_u)} entries, expected nu + degree_u + 1 = "
                 f"{nu + self.degree_u + 1}"
             )
         if len(self.knots_v) != nv + self.degree_v + 1:
-            raise InputError(
+            raise ValueError(
                 f"knots_v has {len(self.knots_v)} entries, expected nv + degree_v + 1 = "
                 f"{nv + self.degree_v + 1}"
             )
-
-
-def _span(knots: np.ndarray, degree: int, t: np.ndarray) -> np.ndarray:
-    """Knot span index i with knots[i] <= t < knots[i+1], clamped to the valid range (A2.1)."""
-    n = len(knots) - degree - 1  # number of basis functions
-    span = np.searchsorted(knots, t, side="right") - 1
-    return np.clip(span, degree, n - 1)
-
-
-def basis_with_derivative(
-    knots: np.ndarray, degree: int, t: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Non-zero basis functions and their first derivatives at parameters ``t``.
-
-    Returns ``span`` (N,) int, ``values`` (N, p+1) and ``derivs`` (N, p+1); column r
-    belongs to basis function ``span - p + r`` (NURBS Book A2.2 and A2.3).
-    """
-    t = np.asarray(t, dtype=np.float64)
-    span = _span(knots, degree, t)
-    values, derivs = _basis_at_span(knots, degree, t, span)
-    return span, values, derivs
 
 
 def evaluate(
@@ -85,134 +64,6 @@ def evaluate(
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
     return _Packed([surface]).evaluate(np.zeros(len(u), dtype=np.int64), u, v)
-
-
-@dataclass(frozen=True)
-class Projection:
-    """Foot points of a projection onto one surface (all arrays have N rows).
-
-    uv : (N, 2) parameters of the foot point
-    foot : (N, 3) mm, the surface point S(u, v)
-    normal : (N, 3) unit normal S_u x S_v (not yet oriented by the face)
-    residual_mm : (N,) tangential part of (point - foot): zero at an exact foot point
-    clamped : (N,) bool, the iteration hit the parameter bounds
-    """
-
-    uv: np.ndarray
-    foot: np.ndarray
-    normal: np.ndarray
-    residual_mm: np.ndarray
-    clamped: np.ndarray
-
-
-def project(
-    surface: SplineSurface,
-    points: np.ndarray,
-    uv_start: np.ndarray,
-    *,
-    max_iterations: int = 30,
-    tol_mm: float = 1e-7,
-    chunk: int = 65536,
-) -> Projection:
-    """Foot points of ``points`` (N, 3) on ``surface`` by Gauss-Newton from ``uv_start`` (N, 2).
-
-    Each step solves the 2x2 normal equations J^T J duv = J^T (p - S) with
-    J = [S_u S_v], then clamps to ``surface.bounds`` (or wraps round a closed
-    direction). Started near the foot point it converges to it at a rate of
-    about |distance| x curvature per step; points stop iterating once their
-    step moves the surface point less than ``tol_mm``. ``residual_mm`` tells
-    whether a point converged. A point clamped in two successive steps stops
-    there (its foot point lies beyond the face; one clamp may be an overshoot).
-    """
-    points = np.asarray(points, dtype=np.float64)
-    face = np.zeros(len(points), dtype=np.int64)
-    return project_faces(
-        SurfaceSet([surface]), face, points, uv_start, max_iterations=max_iterations, tol_mm=tol_mm, chunk=chunk
-    )
-
-
-def _basis_at_span(knots: np.ndarray, degree: int, t: np.ndarray, span: np.ndarray):
-    """Basis values and first derivatives (N, p+1) at ``t`` in the given (global) spans (A2.2, A2.3)."""
-    p = degree
-    count = len(t)
-    left = np.empty((count, p + 1))
-    right = np.empty((count, p + 1))
-    values = np.ones((count, 1))
-    lower = values
-    for j in range(1, p + 1):
-        left[:, j] = t - knots[span + 1 - j]
-        right[:, j] = knots[span + j] - t
-        saved = np.zeros(count)
-        new = np.empty((count, j + 1))
-        for r in range(j):
-            denom = right[:, r + 1] + left[:, j - r]
-            temp = np.divide(values[:, r], denom, out=np.zeros(count), where=denom != 0)
-            new[:, r] = saved + right[:, r + 1] * temp
-            saved = left[:, j - r] * temp
-        new[:, j] = saved
-        lower = values
-        values = new
-    derivs = np.zeros((count, p + 1))
-    for r in range(p + 1 if p > 0 else 0):
-        i = span - p + r
-        if r >= 1:
-            d = knots[i + p] - knots[i]
-            derivs[:, r] += np.divide(p * lower[:, r - 1], d, out=np.zeros(count), where=d != 0)
-        if r <= p - 1:
-            d = knots[i + p + 1] - knots[i + 1]
-            derivs[:, r] -= np.divide(p * lower[:, r], d, out=np.zeros(count), where=d != 0)
-    return values, derivs
-
-
-def _basis_ders_at_span(knots: np.ndarray, degree: int, t: np.ndarray, span: np.ndarray, order: int) -> np.ndarray:
-    """Basis functions and their derivatives up to ``order``: (order + 1, N, p+1) at ``t`` (NURBS Book A2.3)."""
-    p = degree
-    count = len(t)
-
-    def div(a, b):
-        return np.divide(a, b, out=np.zeros(count), where=b != 0)
-
-    ndu = np.zeros((p + 1, p + 1, count))  # upper triangle: basis values; lower: knot differences
-    ndu[0, 0] = 1.0
-    left = np.zeros((p + 1, count))
-    right = np.zeros((p + 1, count))
-    for j in range(1, p + 1):
-        left[j] = t - knots[span + 1 - j]
-        right[j] = knots[span + j] - t
-        saved = np.zeros(count)
-        for r in range(j):
-            ndu[j, r] = right[r + 1] + left[j - r]
-            temp = div(ndu[r, j - 1], ndu[j, r])
-            ndu[r, j] = saved + right[r + 1] * temp
-            saved = left[j - r] * temp
-        ndu[j, j] = saved
-    ders = np.zeros((order + 1, count, p + 1))
-    ders[0] = ndu[:, p].T
-    for r in range(p + 1):
-        a = np.zeros((2, p + 1, count))
-        a[0, 0] = 1.0
-        s1, s2 = 0, 1
-        for k in range(1, order + 1):
-            d = np.zeros(count)
-            rk, pk = r - k, p - k
-            if r >= k:
-                a[s2, 0] = div(a[s1, 0], ndu[pk + 1, rk])
-                d += a[s2, 0] * ndu[rk, pk]
-            j1 = 1 if rk >= -1 else -rk
-            j2 = k - 1 if r - 1 <= pk else p - r
-            for j in range(j1, j2 + 1):
-                a[s2, j] = div(a[s1, j] - a[s1, j - 1], ndu[pk + 1, rk + j])
-                d += a[s2, j] * ndu[rk + j, pk]
-            if r <= pk:
-                a[s2, k] = div(-a[s1, k - 1], ndu[pk + 1, r])
-                d += a[s2, k] * ndu[r, pk]
-            ders[k, :, r] = d
-            s1, s2 = s2, s1
-    factor = p
-    for k in range(1, order + 1):
-        ders[k] *= factor
-        factor *= p - k
-    return ders
 
 
 class _Packed:
@@ -251,15 +102,15 @@ class _Packed:
 
     def _span(self, keys, key_off, nb, degree, lo, length, local, t):
         key = 2.0 * local + np.clip((t - lo[local]) / length[local], 0.0, 1.0)
-        span = np.searchsorted(keys, key, side="right") - 1 - key_off[local]
+        span = find_span(keys, key) - key_off[local]
         return np.clip(span, degree, nb[local] - 1) + key_off[local]
 
     def evaluate(self, local: np.ndarray, u: np.ndarray, v: np.ndarray):
         p, q = self.p, self.q
         su = self._span(self.ku_key, self.ku_off, self.nbu, p, self.lo_u, self.len_u, local, u)
         sv = self._span(self.kv_key, self.kv_off, self.nbv, q, self.lo_v, self.len_v, local, v)
-        nu_, du = _basis_at_span(self.ku, p, u, su)
-        nv_, dv = _basis_at_span(self.kv, q, v, sv)
+        nu_, du = basis_functions(self.ku, p, u, su, 1)
+        nv_, dv = basis_functions(self.kv, q, v, sv, 1)
         ids = self.block_off[local] + (su - self.ku_off[local] - p) * self.spans_v[local] + (
             sv - self.kv_off[local] - q
         )
@@ -280,8 +131,8 @@ class _Packed:
         p, q = self.p, self.q
         su = self._span(self.ku_key, self.ku_off, self.nbu, p, self.lo_u, self.len_u, local, u)
         sv = self._span(self.kv_key, self.kv_off, self.nbv, q, self.lo_v, self.len_v, local, v)
-        bu = _basis_ders_at_span(self.ku, p, u, su, 2)  # (3, N, p+1)
-        bv = _basis_ders_at_span(self.kv, q, v, sv, 2)
+        bu = basis_functions(self.ku, p, u, su, 2)  # (3, N, p+1)
+        bv = basis_functions(self.kv, q, v, sv, 2)
         ids = self.block_off[local] + (su - self.ku_off[local] - p) * self.spans_v[local] + (
             sv - self.kv_off[local] - q
         )
@@ -344,7 +195,7 @@ class SurfaceSet:
         v = np.asarray(v, dtype=np.float64)
         group = self.group[face]
         if (group < 0).any():
-            raise InputError("cannot evaluate faces without a spline surface")
+            raise ValueError("cannot evaluate faces without a spline surface")
         out = [np.empty((len(face), 3)) for _ in range(count)]
         for g, pack in enumerate(self._packs):
             sel = np.arange(len(face)) if len(self._packs) == 1 else np.flatnonzero(group == g)
@@ -361,69 +212,3 @@ class SurfaceSet:
     def evaluate2(self, face: np.ndarray, u: np.ndarray, v: np.ndarray):
         """Points, first and second partials (S, S_u, S_v, S_uu, S_vv, S_uv; (N, 3) each) on faces ``face``."""
         return self._dispatch("evaluate2", 6, face, u, v)
-
-
-def project_faces(
-    surfaces: SurfaceSet,
-    face: np.ndarray,
-    points: np.ndarray,
-    uv_start: np.ndarray,
-    *,
-    max_iterations: int = 30,
-    tol_mm: float = 1e-7,
-    chunk: int = 65536,
-) -> Projection:
-    """Foot points of ``points`` (N, 3) on the surfaces of faces ``face`` (N,), from ``uv_start`` (N, 2).
-
-    The iteration of :func:`project`, for points on many faces at once.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    face = np.asarray(face, dtype=np.int64)
-    uv = np.array(uv_start, dtype=np.float64, copy=True)
-    lo_b = surfaces.bounds[face][:, [0, 2]]
-    hi_b = surfaces.bounds[face][:, [1, 3]]
-    closed = surfaces.closed[face]
-    clamped = np.zeros(len(points), dtype=bool)
-    for lo in range(0, len(points), chunk):
-        active = np.arange(lo, min(lo + chunk, len(points)))
-        was_clamped = np.zeros(len(active), dtype=bool)
-        for _ in range(max_iterations):
-            if len(active) == 0:
-                break
-            cur = uv[active]
-            s, su, sv = surfaces.evaluate(face[active], cur[:, 0], cur[:, 1])
-            r = points[active] - s
-            a = np.einsum("ij,ij->i", su, su)
-            b = np.einsum("ij,ij->i", su, sv)
-            c = np.einsum("ij,ij->i", sv, sv)
-            g1 = np.einsum("ij,ij->i", su, r)
-            g2 = np.einsum("ij,ij->i", sv, r)
-            det = a * c - b * b
-            ok = det > 1e-300
-            safe = np.where(ok, det, 1.0)
-            du = np.where(ok, (c * g1 - b * g2) / safe, 0.0)
-            dv = np.where(ok, (a * g2 - b * g1) / safe, 0.0)
-            nxt = cur + np.column_stack([du, dv])
-            lo_a, hi_a = lo_b[active], hi_b[active]
-            wrap = closed[active]
-            if wrap.any():
-                nxt = np.where(wrap, lo_a + np.mod(nxt - lo_a, hi_a - lo_a), nxt)
-            hit = np.any((nxt < lo_a) | (nxt > hi_a), axis=1)
-            uv[active] = np.clip(nxt, lo_a, hi_a)
-            clamped[active] = hit
-            step = np.sqrt(du * du * a + 2 * du * dv * b + dv * dv * c)  # |du S_u + dv S_v|
-            # a step past a bound is clamped and tried once more (an overshoot near the
-            # edge); clamped twice running, the foot point lies beyond the face
-            keep = (step > tol_mm) & ~(hit & was_clamped)
-            active, was_clamped = active[keep], hit[keep]
-    s = np.empty((len(points), 3))
-    n = np.empty((len(points), 3))
-    for lo in range(0, len(points), chunk):
-        sl = slice(lo, lo + chunk)
-        s[sl], su, sv = surfaces.evaluate(face[sl], uv[sl, 0], uv[sl, 1])
-        n[sl] = np.cross(su, sv)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    n = n / np.where(norm > 0, norm, 1.0)
-    r = points - s
-    tangential = r - np.einsum("ij,ij->i", r, n)[:, None] * n
-    return Projection(uv, s, n, np.linalg.norm(tangential, axis=1), clamped)

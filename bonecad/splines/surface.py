@@ -14,16 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.splines.curve import BSplineCurve, _design_matrix
-from bonecad.errors import FitError, InputError
+from bonecad.splines.basis import design_matrix
+from bonecad.splines.curve import BSplineCurve
+from bonecad.splines.knots import periodic_knots
+from bonecad.splines.lsq import solve_dense
+from bonecad.errors import FitError
 
 #: Largest condition number accepted for an interpolation system.
 _MAX_CONDITION = 1e8
-
-
-def periodic_knots(count: int) -> np.ndarray:
-    """The n + 1 uniform knots of one period of a periodic B-spline with ``count`` poles."""
-    return np.linspace(0.0, 1.0, count + 1)
 
 
 @dataclass(frozen=True)
@@ -50,7 +48,7 @@ class BSplineSurface:
     def __post_init__(self) -> None:
         poles = np.array(self.poles, dtype=np.float64)  # defensive copy
         if poles.ndim != 3 or poles.shape[2] != 3:
-            raise InputError(f"poles must be (nu, nv, 3), got {poles.shape}")
+            raise ValueError(f"poles must be (nu, nv, 3), got {poles.shape}")
         object.__setattr__(self, "poles", poles)
         for name, n, degree, periodic in (
             ("knots_u", poles.shape[0], self.degree_u, self.periodic_u),
@@ -59,9 +57,9 @@ class BSplineSurface:
             knots = np.array(getattr(self, name), dtype=np.float64)
             expected = n + 1 if periodic else n + degree + 1
             if len(knots) != expected:
-                raise InputError(f"{name} has {len(knots)} entries, expected {expected} for {n} poles of degree {degree}")
+                raise ValueError(f"{name} has {len(knots)} entries, expected {expected} for {n} poles of degree {degree}")
             if periodic and not np.allclose(knots, periodic_knots(n), atol=1e-12):
-                raise InputError(f"{name}: a periodic direction needs uniform knots on [0, 1]")
+                raise ValueError(f"{name}: a periodic direction needs uniform knots on [0, 1]")
             object.__setattr__(self, name, knots)
 
     @property
@@ -74,8 +72,8 @@ class BSplineSurface:
 
     def _basis(self, t: np.ndarray, direction: str) -> np.ndarray:
         if direction == "u":
-            return _design_matrix(t, self.knots_u, self.degree_u, self.periodic_u, self.poles.shape[0]).toarray()
-        return _design_matrix(t, self.knots_v, self.degree_v, self.periodic_v, self.poles.shape[1]).toarray()
+            return design_matrix(t, self.knots_u, self.degree_u, self.periodic_u, self.poles.shape[0]).toarray()
+        return design_matrix(t, self.knots_v, self.degree_v, self.periodic_v, self.poles.shape[1]).toarray()
 
     def grid(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """(len(u), len(v), 3) points on the parameter grid u x v."""
@@ -106,7 +104,7 @@ class BSplineSurface:
     def reversed_v(self) -> "BSplineSurface":
         """The same point set with v -> 1 - v (normal flipped). Clamped v only."""
         if self.periodic_v:
-            raise InputError("reversed_v: only a clamped v direction can be reversed")
+            raise ValueError("reversed_v: only a clamped v direction can be reversed")
         return BSplineSurface(self.poles[:, ::-1], self.knots_u, (1.0 - self.knots_v)[::-1], self.degree_u,
                               self.degree_v, self.periodic_u, self.periodic_v, self.region, self.reversed)
 
@@ -121,12 +119,6 @@ class BSplineSurface:
         }
 
 
-def _check_conditioning(matrix: np.ndarray, what: str) -> None:
-    cond = np.linalg.cond(matrix)
-    if not np.isfinite(cond) or cond > _MAX_CONDITION:
-        raise FitError(f"{what}: interpolation system is singular or ill-conditioned (condition number {cond:.3g})")
-
-
 def interpolate_periodic(values: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
     """Poles of the periodic cubic with uniform knots (n poles) through n values.
 
@@ -139,14 +131,13 @@ def interpolate_periodic(values: np.ndarray, params: np.ndarray | None = None) -
     n = len(values)
     params = np.arange(n) / n if params is None else np.asarray(params, dtype=np.float64)
     if params.shape != (n,):
-        raise InputError(f"need one parameter per value: {params.shape} parameters, {n} values")
+        raise ValueError(f"need one parameter per value: {params.shape} parameters, {n} values")
     steps = np.mod(np.diff(np.append(params, params[0])), 1.0)
     if np.any(params < 0) or np.any(params >= 1) or np.any(steps <= 0) or abs(steps.sum() - 1.0) > 1e-9:
         raise FitError("periodic interpolation parameters must lie in [0, 1) and go once round in order")
-    matrix = _design_matrix(params, periodic_knots(n), 3, True, n).toarray()
-    _check_conditioning(matrix, "periodic interpolation")
+    matrix = design_matrix(params, periodic_knots(n), 3, True, n).toarray()
     flat = values.reshape(n, -1)
-    return np.linalg.solve(matrix, flat).reshape(values.shape)
+    return solve_dense(matrix, flat, max_condition=_MAX_CONDITION, what="periodic interpolation").reshape(values.shape)
 
 
 def averaged_interpolation_knots(params: np.ndarray, degree: int = 3) -> np.ndarray:
@@ -166,7 +157,7 @@ def interpolate_clamped(values: np.ndarray, params: np.ndarray, degree: int = 3)
     if params.shape != (n,) or np.any(np.diff(params) <= 0) or params[0] != 0.0 or params[-1] != 1.0:
         raise FitError("clamped interpolation parameters must increase from 0 to 1, one per value")
     knots = averaged_interpolation_knots(params, degree)
-    matrix = _design_matrix(params, knots, degree, False, n).toarray()
-    _check_conditioning(matrix, "clamped interpolation")
+    matrix = design_matrix(params, knots, degree, False, n).toarray()
     flat = values.reshape(n, -1)
-    return np.linalg.solve(matrix, flat).reshape(values.shape), knots
+    poles = solve_dense(matrix, flat, max_condition=_MAX_CONDITION, what="clamped interpolation")
+    return poles.reshape(values.shape), knots

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bonecad.splines.lsq import least_squares
 from bonecad.splines.tspline import KnotSegment, TSpline, insert_segments
 
 
@@ -94,7 +95,7 @@ def build_cap(tube: TSpline, end: str, hole_points: np.ndarray, outward: np.ndar
         q = hole_points - centre
         x, y, z = q @ e1, q @ e2, q @ n
         design = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
-        height = float(np.linalg.lstsq(design, z, rcond=None)[0][0])
+        height = float(least_squares(design, z)[0])
     apex = centre + height * n
     rad = np.linalg.norm(ring - centre, axis=1).mean()
     spokes = _pole_spokes(r0 - centre, s_knots, mesh.s_period, n, e1, e2)

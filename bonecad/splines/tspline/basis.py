@@ -1,5 +1,5 @@
-"""Cubic univariate building blocks: B-spline basis functions on five knots,
-Bernstein polynomials, and Boehm's split of one basis function.
+"""Cubic univariate building blocks of T-splines: one B-spline basis function on
+its five local knots, its Bernstein coefficients, and Boehm's split of it.
 
 Everything here is vectorised over many functions/points at once and has no
 knowledge of T-meshes. Formulas: Piegl & Tiller, The NURBS Book, 2nd ed.,
@@ -9,6 +9,8 @@ insertion (ibid. eq. 5.11) restricted to a single basis function.
 from __future__ import annotations
 
 import numpy as np
+
+from bonecad.splines.basis import find_span
 
 
 def _inv(d: np.ndarray) -> np.ndarray:
@@ -24,7 +26,7 @@ def knot_span(knots: np.ndarray, x: np.ndarray) -> np.ndarray:
     knots : (n, 5) float, non-decreasing rows; x : (n,) float.
     Returns (n,) int; -1 where x lies outside [k_0, k_4).
     """
-    r = np.sum(knots <= x[:, None], axis=1) - 1
+    r = find_span(knots, x)
     return np.where((r >= 0) & (r <= 3), r, -1)
 
 
@@ -64,31 +66,6 @@ def bspline5(knots: np.ndarray, x: np.ndarray, span: np.ndarray, order: int = 0)
         b = _inv(k[:, 4] - k[:, 1])
         out.append(3.0 * (a * d2[0] - b * d2[1]))
     return np.stack(out)
-
-
-def bernstein3(u: np.ndarray, order: int = 0) -> np.ndarray:
-    """Cubic Bernstein polynomials on [0, 1] and their derivatives in u.
-
-    u : (n,) float. Returns (order + 1, n, 4) float.
-    """
-    v = 1.0 - u
-    uu, vv, uv = u * u, v * v, u * v
-    out = np.empty((order + 1, len(u), 4))
-    out[0, :, 0] = vv * v
-    out[0, :, 1] = 3.0 * uv * v
-    out[0, :, 2] = 3.0 * uv * u
-    out[0, :, 3] = uu * u
-    if order >= 1:
-        out[1, :, 0] = -3.0 * vv
-        out[1, :, 1] = 3.0 * (vv - 2.0 * uv)
-        out[1, :, 2] = 3.0 * (2.0 * uv - uu)
-        out[1, :, 3] = 3.0 * uu
-    if order >= 2:
-        out[2, :, 0] = 6.0 * v
-        out[2, :, 1] = 6.0 * (u - 2.0 * v)
-        out[2, :, 2] = 6.0 * (v - 2.0 * u)
-        out[2, :, 3] = 6.0 * u
-    return out
 
 
 def bezier_coefficients(knots: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

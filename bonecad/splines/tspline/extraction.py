@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from bonecad.errors import InputError
+from bonecad.splines.basis import find_span
 from bonecad.splines.tspline.basis import bezier_coefficients
 from bonecad.splines.tspline.tmesh import END_LINES, TMesh
 
@@ -73,23 +73,23 @@ class BezierExtraction:
         """Element and local Bezier coordinates of parameter points.
 
         s, t : (n,) float. s wraps when periodic; points outside the
-        parameter range by more than 1e-9 of its size raise InputError.
+        parameter range by more than 1e-9 of its size raise ValueError.
         Returns (element (n,) int, u (n,) float in [0, 1], v (n,) float in [0, 1]).
         """
         mesh = self.mesh
         s = np.asarray(s, dtype=np.float64).ravel()
         t = np.asarray(t, dtype=np.float64).ravel()
         if s.shape != t.shape:
-            raise InputError(f"s and t: expected equal lengths, got {s.size} and {t.size}")
+            raise ValueError(f"s and t: expected equal lengths, got {s.size} and {t.size}")
         t = _clamp(t, *mesh.t_range, "t")
-        j = _cell(mesh.t_lines, t)
+        j = find_span(mesh.t_lines, t, END_LINES - 1)  # the end lines act as clamped knots
         if mesh.periodic:
             lo = mesh.s_lines[0]
             s = lo + np.mod(s - lo, mesh.s_period)
-            i = np.clip(np.searchsorted(mesh.s_lines, s, side="right") - 1, 0, len(mesh.s_lines) - 1)
+            i = np.clip(find_span(mesh.s_lines, s), 0, len(mesh.s_lines) - 1)
         else:
             s = _clamp(s, *mesh.s_range, "s")
-            i = _cell(mesh.s_lines, s)
+            i = find_span(mesh.s_lines, s, END_LINES - 1)
         e = self.cell_element[i, j]
         ds = s - self.s_bounds[e, 0]
         if mesh.periodic:
@@ -103,14 +103,8 @@ def _clamp(x: np.ndarray, lo: float, hi: float, name: str) -> np.ndarray:
     tol = 1e-9 * max(hi - lo, 1.0)
     bad = (x < lo - tol) | (x > hi + tol) | ~np.isfinite(x)
     if bad.any():
-        raise InputError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], e.g. {x[bad][0]}")
+        raise ValueError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], e.g. {x[bad][0]}")
     return np.clip(x, lo, hi)
-
-
-def _cell(lines: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Cell index along a clamped direction; the far end belongs to the last cell."""
-    c = np.searchsorted(lines, x, side="right") - 1
-    return np.clip(c, END_LINES - 1, len(lines) - END_LINES - 1)
 
 
 def bezier_mesh_edges(mesh: TMesh) -> tuple[np.ndarray, np.ndarray]:
@@ -195,7 +189,7 @@ def extract(mesh: TMesh) -> BezierExtraction:
     n_e = len(keys)
     area = (i1 - i0) * (j1 - j0)
     if np.any(np.bincount(cell_e, minlength=n_e) != area):
-        raise InputError("invalid T-mesh: its Bezier mesh has non-rectangular faces")
+        raise ValueError("invalid T-mesh: its Bezier mesh has non-rectangular faces")
     index_bounds = np.stack([i0, i1, j0, j1], axis=1)
     s_bounds = np.stack([mesh.s_value(i0), mesh.s_value(i1)], axis=1)
     t_bounds = np.stack([mesh.t_lines[j0], mesh.t_lines[j1]], axis=1)

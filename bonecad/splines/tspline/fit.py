@@ -32,13 +32,12 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from bonecad.errors import FitError, InputError
 from bonecad.splines.tspline import BezierExtraction, KnotSegment, TSpline, insert_segments, refine_elements
-from bonecad.splines.tspline.basis import bernstein3
+from bonecad.splines.basis import bernstein3
+from bonecad.splines.lsq import normal_equations, solve_spd
 
 log = logging.getLogger("bonecad")
 
@@ -335,9 +334,9 @@ def solve_control_points(
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     if points.shape != (n, 3) or np.shape(s) != (n,) or np.shape(t) != (n,):
-        raise InputError(f"points, s, t: expected (n, 3), (n,), (n,), got {points.shape}, {np.shape(s)}, {np.shape(t)}")
+        raise ValueError(f"points, s, t: expected (n, 3), (n,), (n,), got {points.shape}, {np.shape(s)}, {np.shape(t)}")
     if np.abs(ts.weights - 1.0).max() > 1e-9:
-        raise InputError("solve_control_points: expected a polynomial T-spline (weights 1)")
+        raise ValueError("solve_control_points: expected a polynomial T-spline (weights 1)")
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
     w = w / w.sum()
     ext = ts.extraction
@@ -345,27 +344,11 @@ def solve_control_points(
     rows = (bernstein3(u)[0][:, :, None] * bernstein3(v)[0][:, None, :]).reshape(n, 16)
     bern = sp.csr_matrix((rows.ravel(), (16 * elem[:, None] + np.arange(16)).ravel(), np.arange(0, 16 * n + 1, 16)),
                          shape=(n, 16 * ext.n_elements))
-    weighted = sp.diags(w) @ bern
-    inner = bern.T @ weighted
-    if fairness > 0:
-        inner = inner + fairness * _block_diagonal(fairness_blocks(ts))
+    fair = fairness * _block_diagonal(fairness_blocks(ts)) if fairness > 0 else None
+    inner, rhs = normal_equations(bern, w, points, fair)
     op = ext.operator
-    normal = (op.T @ inner @ op).tocsr()
-    rhs = op.T @ (weighted.T @ points)
     # tiny Tikhonov term: control points no datum or fairness reaches stay put
-    scale = normal.diagonal().max()
-    normal = normal + sp.identity(normal.shape[0]) * (1e-12 * scale)
-    try:
-        # minimum degree on the symmetric pattern (about twice as fast as COLAMD here); the matrix is
-        # symmetric positive definite, so diagonal pivots are stable: symmetric mode keeps the
-        # ordering's fill (another 2x on TLEM2's 2013 control points)
-        lu = spla.splu(normal.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options={"SymmetricMode": True})
-    except RuntimeError as exc:
-        raise FitError(f"least-squares fit: singular normal equations ({exc})") from exc
-    cp = lu.solve(np.asarray(rhs))
-    if not np.all(np.isfinite(cp)):
-        raise FitError("least-squares fit produced non-finite control points")
+    cp = solve_spd((op.T @ inner @ op).tocsr(), op.T @ rhs, tikhonov=1e-12)
     return ts.with_control_points(cp)
 
 
@@ -568,7 +551,7 @@ def fit_adaptive(
     """
     tol = tolerances
     if mode not in ("local", "global"):
-        raise InputError(f"mode: expected 'local' or 'global', got {mode!r}")
+        raise ValueError(f"mode: expected 'local' or 'global', got {mode!r}")
     points = np.asarray(points, dtype=np.float64)
     w = np.ones(len(points)) if weights is None else np.asarray(weights, dtype=np.float64)
     if s is None or t is None:

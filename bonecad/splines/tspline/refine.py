@@ -31,9 +31,9 @@ from typing import Literal, Sequence
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
-from bonecad.errors import InputError, KernelError
+from bonecad.errors import FitError, KernelError
+from bonecad.splines.lsq import normal_equations, solve_spd
 from bonecad.splines.tspline.basis import split_coefficients
 from bonecad.splines.tspline.suitability import check_suitability
 from bonecad.splines.tspline.tmesh import END_LINES, TMesh
@@ -410,9 +410,9 @@ def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float 
     t_map = np.arange(mesh.shape[1])
     for seg in segments:
         if seg.axis not in ("s", "t"):
-            raise InputError(f"KnotSegment.axis: expected 's' or 't', got {seg.axis!r}")
+            raise ValueError(f"KnotSegment.axis: expected 's' or 't', got {seg.axis!r}")
         if not seg.hi > seg.lo:
-            raise InputError(f"KnotSegment: expected lo < hi, got lo={seg.lo}, hi={seg.hi}")
+            raise ValueError(f"KnotSegment: expected lo < hi, got lo={seg.lo}, hi={seg.hi}")
         mesh, k, new = mesh.with_line(seg.axis, seg.value, tol)
         if new:
             m = s_map if seg.axis == "s" else t_map
@@ -458,10 +458,10 @@ def refine_elements(ts: TSpline, elements: Sequence[int], axes: np.ndarray | Non
     ext = ts.extraction
     e = np.asarray(elements, dtype=np.int64).ravel()
     if e.size and (e.min() < 0 or e.max() >= ext.n_elements):
-        raise InputError(f"elements: indices must lie in 0..{ext.n_elements - 1}")
+        raise ValueError(f"elements: indices must lie in 0..{ext.n_elements - 1}")
     split = np.ones((e.size, 2), dtype=bool) if axes is None else np.asarray(axes, dtype=bool)
     if split.shape != (e.size, 2):
-        raise InputError(f"axes: expected ({e.size}, 2) bool, got {split.shape}")
+        raise ValueError(f"axes: expected ({e.size}, 2) bool, got {split.shape}")
     sb, tb = ext.s_bounds[e], ext.t_bounds[e]
     segs = []
     for (s0, s1), (t0, t1), (in_s, in_t) in zip(sb.tolist(), tb.tolist(), split.tolist()):
@@ -478,7 +478,7 @@ def _snap(lines: np.ndarray, lo: float, hi: float, tol: float) -> tuple[int, int
     a = real[lines[real] <= lo + tol]
     b = real[lines[real] >= hi - tol]
     if a.size == 0 or b.size == 0:
-        raise InputError(f"segment [{lo}, {hi}] leaves the parameter range [{lines[0]}, {lines[-1]}]")
+        raise ValueError(f"segment [{lo}, {hi}] leaves the parameter range [{lines[0]}, {lines[-1]}]")
     return int(a[-1]), int(b[0])
 
 
@@ -488,7 +488,7 @@ def _snap_s(mesh: TMesh, lo: float, hi: float, tol: float) -> tuple[int, int]:
         return _snap(mesh.s_lines, lo, hi, tol)
     s_n = mesh.shape[0]
     if hi - lo > mesh.s_period + tol:
-        raise InputError(f"segment [{lo}, {hi}] is longer than the s period {mesh.s_period}")
+        raise ValueError(f"segment [{lo}, {hi}] is longer than the s period {mesh.s_period}")
     base = mesh.s_lines[0]
     lo_w = base + np.mod(lo - base, mesh.s_period)
     a = int(np.searchsorted(mesh.s_lines, lo_w + tol, side="right") - 1)
@@ -503,7 +503,7 @@ def remove_segments(ts: TSpline, segments: Sequence[KnotSegment], *, samples_per
     """Remove T-mesh edges along knot-line segments and refit the surface.
 
     Removes every unit edge on the segments' lines between lo and hi. The
-    coarser mesh must be valid and analysis-suitable (else InputError naming
+    coarser mesh must be valid and analysis-suitable (else ValueError naming
     the reason). The new control points minimise the squared distance of the
     homogeneous surfaces at ``samples_per_element``^2 points per new element,
     so the surface is kept exactly when it lies in the coarser space (rows
@@ -516,19 +516,19 @@ def remove_segments(ts: TSpline, segments: Sequence[KnotSegment], *, samples_per
         if seg.axis == "s":
             hit = np.flatnonzero(np.abs(mesh.s_lines - seg.value) <= tol)
             if hit.size == 0:
-                raise InputError(f"remove: s = {seg.value} is not a knot line")
+                raise ValueError(f"remove: s = {seg.value} is not a knot line")
             a, b = _snap(mesh.t_lines, seg.lo, seg.hi, tol)
             t_e[hit[0], a:b] = False
         else:
             hit = np.flatnonzero(np.abs(mesh.t_lines[3:-3] - seg.value) <= tol) + 3
             if hit.size == 0:
-                raise InputError(f"remove: t = {seg.value} is not a knot line")
+                raise ValueError(f"remove: t = {seg.value} is not a knot line")
             a, b = _snap_s(mesh, seg.lo, seg.hi, tol)
             s_e[hit[0], np.arange(a, b) % s_e.shape[1]] = False
     coarse = mesh.with_edges(s_e, t_e)
     report = check_suitability(coarse)
     if not report.suitable:
-        raise InputError("remove: the coarser T-mesh is not analysis-suitable:\n" + report.describe())
+        raise ValueError("remove: the coarser T-mesh is not analysis-suitable:\n" + report.describe())
     shape = TSpline(coarse, np.zeros((len(coarse.anchors), 3)), np.ones(len(coarse.anchors)))
     ext = shape.extraction
     g = (np.arange(samples_per_element) + 0.5) / samples_per_element
@@ -539,10 +539,9 @@ def remove_segments(ts: TSpline, segments: Sequence[KnotSegment], *, samples_per
     basis = shape.basis_matrix(s, t)  # polynomial blending functions (weights 1)
     old_shape = TSpline(mesh, np.zeros((ts.n_control, 3)), np.ones(ts.n_control))
     target = old_shape.basis_matrix(s, t) @ np.hstack([ts.control_points * ts.weights[:, None], ts.weights[:, None]])
-    normal = (basis.T @ basis).tocsc()
-    pw = np.column_stack([spla.spsolve(normal, basis.T @ target[:, c]) for c in range(4)])
+    pw = solve_spd(*normal_equations(basis, np.ones(len(s)), target))
     if np.any(pw[:, 3] <= 0):
-        raise InputError("remove: the refitted weights are not all positive")
+        raise FitError("remove: the refitted weights are not all positive")
     new = TSpline(coarse, pw[:, :3] / pw[:, 3:], pw[:, 3])
     dev = np.linalg.norm(new.evaluate(s, t).points - ts.evaluate(s, t).points, axis=1)
     return Removal(new, float(dev.max()))

@@ -81,11 +81,11 @@ def from_dict(data: dict) -> TSpline:
         s_edges = _unruns(data["s_edges"], (t_n, s_seg), "s_edges")
         t_edges = _unruns(data["t_edges"], (s_n, t_n - 1), "t_edges")
         cp, w = data["control_points"], data["weights"]
-    except (KeyError, TypeError, ValueError) as exc:
+        mesh = TMesh(s_lines, t_lines, s_edges, t_edges, period)
+        mesh.validate()
+        return TSpline(mesh, np.asarray(cp, dtype=np.float64).reshape(-1, 3), np.asarray(w, dtype=np.float64))
+    except (KeyError, TypeError, ValueError) as exc:  # the kernel's ValueError: the document is at fault
         raise InputError(f"malformed {FORMAT} document: {exc}") from exc
-    mesh = TMesh(s_lines, t_lines, s_edges, t_edges, period)
-    mesh.validate()
-    return TSpline(mesh, np.asarray(cp, dtype=np.float64).reshape(-1, 3), np.asarray(w, dtype=np.float64))
 
 
 def save(ts: TSpline, path: str | Path) -> Path:

@@ -32,7 +32,6 @@ from functools import cached_property
 
 import numpy as np
 
-from bonecad.errors import InputError
 
 #: Phantom lines at each open end that carry no control points (cubic: 2).
 PHANTOM = 2
@@ -78,7 +77,7 @@ def ray_cast(cross: np.ndarray, rows: np.ndarray, pos: np.ndarray, periodic: boo
     periodic : whether rows wrap (indices then unwrap: l + m*L).
 
     Returns (n, 5) int: the indices [l-2, l-1, l, l+1, l+2] of crossings.
-    Raises InputError when a ray leaves an open row or wraps over itself.
+    Raises ValueError when a ray leaves an open row or wraps over itself.
     """
     n_rows, n_lines = cross.shape
     flat = np.flatnonzero(cross)  # r * n_lines + l, row by row (faster than 2-D nonzero)
@@ -94,14 +93,14 @@ def ray_cast(cross: np.ndarray, rows: np.ndarray, pos: np.ndarray, periodic: boo
         idx = l_idx[ptr[rows][:, None] + q - wrap * c] + wrap * n_lines
         bad = np.flatnonzero(c[:, 0] < 4)
         if bad.size:
-            raise InputError(
+            raise ValueError(
                 f"{bad.size} ray(s) wrap over themselves: a periodic row needs at least 4 "
                 f"crossing lines, row {rows[bad[0]]} has {c[bad[0], 0]}"
             )
         return idx
     bad = np.flatnonzero((q[:, 0] < 0) | (q[:, 4] >= c[:, 0]))
     if bad.size:
-        raise InputError(
+        raise ValueError(
             f"{bad.size} ray(s) leave the domain: point at line {pos[bad[0]]} of row "
             f"{rows[bad[0]]} lacks two crossings on a side"
         )
@@ -243,15 +242,15 @@ class TMesh:
 
     # ----------------------------------------------------------- validation
     def validate(self) -> None:
-        """Raise InputError naming the first rule the mesh breaks."""
+        """Raise ValueError naming the first rule the mesh breaks."""
         s_n, t_n = self.shape
         _check_lines(self.t_lines, "t_lines", periodic_span=None)
         _check_lines(self.s_lines, "s_lines", periodic_span=self.s_period)
         n_s_seg = s_n if self.periodic else s_n - 1
         if self.s_edges.shape != (t_n, n_s_seg) or self.s_edges.dtype != bool:
-            raise InputError(f"s_edges: expected bool ({t_n}, {n_s_seg}), got {self.s_edges.dtype} {self.s_edges.shape}")
+            raise ValueError(f"s_edges: expected bool ({t_n}, {n_s_seg}), got {self.s_edges.dtype} {self.s_edges.shape}")
         if self.t_edges.shape != (s_n, t_n - 1) or self.t_edges.dtype != bool:
-            raise InputError(f"t_edges: expected bool ({s_n}, {t_n - 1}), got {self.t_edges.dtype} {self.t_edges.shape}")
+            raise ValueError(f"t_edges: expected bool ({s_n}, {t_n - 1}), got {self.t_edges.dtype} {self.t_edges.shape}")
         _check_strips(self.s_edges, self.t_edges, "t")
         if not self.periodic:
             _check_strips(self.t_edges, self.s_edges, "s")
@@ -261,7 +260,7 @@ class TMesh:
         dangling = ((left ^ right) & ~vertical) | ((down ^ up) & ~horizontal)
         if dangling.any():
             i, j = np.argwhere(dangling)[0]
-            raise InputError(f"invalid T-mesh: an edge ends in the open at {self.point_label(i, j)}")
+            raise ValueError(f"invalid T-mesh: an edge ends in the open at {self.point_label(i, j)}")
         corner = (left ^ right) & (down ^ up)
         boundary = np.zeros_like(corner)
         boundary[:, [0, t_n - 1]] = True
@@ -270,17 +269,17 @@ class TMesh:
         corner &= ~boundary
         if corner.any():
             i, j = np.argwhere(corner)[0]
-            raise InputError(
+            raise ValueError(
                 f"invalid T-mesh: L-shaped corner inside the domain at {self.point_label(i, j)} "
                 "(faces must be rectangles)"
             )
         if len(self.anchors) == 0:
-            raise InputError("invalid T-mesh: no control points")
+            raise ValueError("invalid T-mesh: no control points")
         s_idx, _ = self.anchor_knots
         if self.periodic:
             span = self.s_value(s_idx[:, 4]) - self.s_value(s_idx[:, 0])
             if np.any(span > self.s_period * (1 + 1e-12)):
-                raise InputError("invalid T-mesh: a blending function spans more than the s period")
+                raise ValueError("invalid T-mesh: a blending function spans more than the s period")
 
     # ------------------------------------------------------ local operations
     def with_line(self, axis: str, value: float, tol: float) -> tuple[TMesh, int, bool]:
@@ -298,7 +297,7 @@ class TMesh:
         else:
             lines, lo, hi = self.t_lines, *self.t_range
         if not lo - tol <= value <= hi + tol:
-            raise InputError(f"{axis} = {value!r} lies outside the parameter range [{lo}, {hi}]")
+            raise ValueError(f"{axis} = {value!r} lies outside the parameter range [{lo}, {hi}]")
         near = np.flatnonzero(np.abs(lines - value) <= tol)
         if self.periodic and axis == "s" and near.size == 0 and hi - value <= tol:
             near = np.array([0])
@@ -331,30 +330,30 @@ class TMesh:
 def _clamped_lines(knots: np.ndarray, name: str) -> np.ndarray:
     """Distinct clamped knots -> grid line values with the end lines repeated."""
     if knots.ndim != 1 or knots.size < 2:
-        raise InputError(f"{name}: expected at least 2 distinct knots, got shape {knots.shape}")
+        raise ValueError(f"{name}: expected at least 2 distinct knots, got shape {knots.shape}")
     pad = END_LINES - 1
     return np.concatenate([np.full(pad, knots[0]), knots, np.full(pad, knots[-1])])
 
 
 def _check_lines(lines: np.ndarray, name: str, periodic_span: float | None) -> None:
     if lines.ndim != 1 or not np.all(np.isfinite(lines)):
-        raise InputError(f"{name}: expected a 1-D array of finite knot values, got shape {lines.shape}")
+        raise ValueError(f"{name}: expected a 1-D array of finite knot values, got shape {lines.shape}")
     if periodic_span is not None:
         if not periodic_span > 0:
-            raise InputError(f"s_period: expected a positive period, got {periodic_span}")
+            raise ValueError(f"s_period: expected a positive period, got {periodic_span}")
         if lines.size < 4 or np.any(np.diff(lines) <= 0) or lines[-1] - lines[0] >= periodic_span:
-            raise InputError(
+            raise ValueError(
                 f"{name}: a periodic direction needs at least 4 strictly increasing knots within one "
                 f"period ({periodic_span}); got {lines.size} knots spanning {np.ptp(lines) if lines.size else 0}"
             )
         return
     e = END_LINES
     if lines.size < 2 * e:
-        raise InputError(f"{name}: expected at least {2 * e} lines, got {lines.size}")
+        raise ValueError(f"{name}: expected at least {2 * e} lines, got {lines.size}")
     if np.any(lines[:e] != lines[0]) or np.any(lines[-e:] != lines[-1]):
-        raise InputError(f"{name}: the first and last {e} lines of a clamped direction must share the end knot")
+        raise ValueError(f"{name}: the first and last {e} lines of a clamped direction must share the end knot")
     if np.any(np.diff(lines[e - 1 : lines.size - e + 1]) <= 0):
-        raise InputError(f"{name}: knot values must increase strictly between the clamped ends")
+        raise ValueError(f"{name}: knot values must increase strictly between the clamped ends")
 
 
 def _check_strips(along: np.ndarray, across: np.ndarray, axis: str) -> None:
@@ -365,10 +364,10 @@ def _check_strips(along: np.ndarray, across: np.ndarray, axis: str) -> None:
     """
     e = END_LINES
     if not (along[:e].all() and along[-e:].all()):
-        raise InputError(f"invalid T-mesh: the four boundary {axis}-lines at each clamped end must be complete")
+        raise ValueError(f"invalid T-mesh: the four boundary {axis}-lines at each clamped end must be complete")
     head, tail = across[:, : e - 1], across[:, -(e - 1) :]
     if np.any(head != across[:, e - 1 : e]) or np.any(tail != across[:, -e : -e + 1]):
-        raise InputError(
+        raise ValueError(
             f"invalid T-mesh: every edge reaching a clamped {axis} boundary must continue through its "
             "zero-width end strip (and no others may)"
         )

@@ -18,8 +18,8 @@ from math import comb
 import numpy as np
 import scipy.sparse as sp
 
-from bonecad.errors import InputError
-from bonecad.splines.tspline.basis import bernstein3, bspline5, knot_span
+from bonecad.splines.basis import bernstein3
+from bonecad.splines.tspline.basis import bspline5, knot_span
 from bonecad.splines.tspline.extraction import BezierExtraction, extract
 from bonecad.splines.tspline.tmesh import TMesh
 
@@ -61,11 +61,11 @@ class TSpline:
         cp = np.array(self.control_points, dtype=np.float64)
         w = np.array(self.weights, dtype=np.float64)
         if cp.shape != (n, 3):
-            raise InputError(f"control_points: the T-mesh has {n} anchors, expected ({n}, 3), got {cp.shape}")
+            raise ValueError(f"control_points: the T-mesh has {n} anchors, expected ({n}, 3), got {cp.shape}")
         if w.shape != (n,):
-            raise InputError(f"weights: expected ({n},), got {w.shape}")
+            raise ValueError(f"weights: expected ({n},), got {w.shape}")
         if not (np.all(np.isfinite(cp)) and np.all(np.isfinite(w)) and np.all(w > 0)):
-            raise InputError("control_points and weights must be finite, weights positive")
+            raise ValueError("control_points and weights must be finite, weights positive")
         object.__setattr__(self, "control_points", cp)
         object.__setattr__(self, "weights", w)
 
@@ -84,10 +84,10 @@ class TSpline:
         m_s = s_n if mesh.periodic else s_n - 4
         m_t = t_n - 4
         if cp.shape != (m_s, m_t, 3):
-            raise InputError(f"control_points: expected ({m_s}, {m_t}, 3) for these knots, got {cp.shape}")
+            raise ValueError(f"control_points: expected ({m_s}, {m_t}, 3) for these knots, got {cp.shape}")
         w = np.ones((m_s, m_t)) if weights is None else np.asarray(weights, dtype=np.float64)
         if w.shape != (m_s, m_t):
-            raise InputError(f"weights: expected ({m_s}, {m_t}), got {w.shape}")
+            raise ValueError(f"weights: expected ({m_s}, {m_t}), got {w.shape}")
         # anchors are ordered by t-line, then s-line
         return cls(mesh, cp.transpose(1, 0, 2).reshape(-1, 3), w.T.ravel())
 
@@ -148,7 +148,7 @@ class TSpline:
         s, t : (n,) float parameters. Uses the Bezier patches; vectorised.
         """
         if order not in (0, 1, 2):
-            raise InputError(f"order: expected 0, 1 or 2, got {order!r}")
+            raise ValueError(f"order: expected 0, 1 or 2, got {order!r}")
         ext = self.extraction
         elem, u, v = ext.locate(s, t)
         n = len(elem)
@@ -185,7 +185,7 @@ class TSpline:
         At most 16 non-zeros per row for an analysis-suitable T-mesh.
         """
         if ds < 0 or dt < 0 or ds + dt > 2:
-            raise InputError(f"ds, dt: expected non-negative orders with ds + dt <= 2, got {ds}, {dt}")
+            raise ValueError(f"ds, dt: expected non-negative orders with ds + dt <= 2, got {ds}, {dt}")
         ext = self.extraction
         elem, u, v = ext.locate(s, t)
         order = ds + dt
