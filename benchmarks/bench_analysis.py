@@ -26,7 +26,7 @@ from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
 from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
 from bonecad.mesh.closest import TriangleLocator
-from bonecad.occ.continuity import seam_continuity
+from bonecad.analysis.continuity import seam_continuity
 from bonecad.analysis.deviation import sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.occ.tessellate import TessellationSettings, tessellate
 from bonecad.config import load_config

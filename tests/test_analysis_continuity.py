@@ -1,10 +1,12 @@
 """Continuity and zebra analysis on shapes whose continuity is known by construction."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from bonecad.occ.continuity import ContinuityTolerances, knot_continuity, seam_continuity
+from bonecad.analysis.continuity import ContinuityTolerances, knot_continuity, seam_continuity
 from bonecad.render.figures import VIEWS, render_tessellation_normals, screen_axes, zebra_image, zebra_png
 from bonecad.occ.tessellate import tessellate
 from bonecad.errors import InputError
@@ -93,7 +95,8 @@ def test_c0_join_fails_g1_and_thresholds_move_the_class():
     assert list(result.classes) == ["C0"]
     angle = result.angle_deg.max()
     assert angle > 1.0
-    loose = seam_continuity(shape, tolerances=ContinuityTolerances(angle_deg=angle + 1, curvature_jump=10.0))
+    loose = seam_continuity(shape, tolerances=replace(ContinuityTolerances.default(), angle_deg=angle + 1,
+                                                               curvature_jump=10.0))
     assert list(loose.classes) == ["G2"]
 
 

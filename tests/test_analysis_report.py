@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from bonecad.occ.continuity import knot_continuity, seam_continuity
+from bonecad.analysis.continuity import knot_continuity, seam_continuity
 from bonecad.analysis.deviation import shape_deviation
 from tests.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, compare_histogram
 from bonecad.render.figures import deviation_map_png, histogram_png

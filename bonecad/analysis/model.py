@@ -16,7 +16,7 @@ import numpy as np
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.run.executor import JobGroup
-from bonecad.occ.continuity import KnotContinuity, SeamContinuity, knot_continuity, seam_continuity
+from bonecad.analysis.continuity import KnotContinuity, SeamContinuity, knot_continuity, seam_continuity
 from bonecad.analysis.deviation import DeviationResult, shape_deviation
 from bonecad.render.figures import deviation_map_png, histogram_png, zebra_png
 from bonecad.occ.tessellate import tessellate
