@@ -84,10 +84,10 @@ def bezier_shell(shape):
     from OCP.GeomConvert import GeomConvert_BSplineSurfaceToBezierSurface
     from OCP.TColGeom import TColGeom_Array2OfBezierSurface
 
-    from bonecad.occ.tessellate import shape_faces
+    from bonecad.occ.brep import faces
 
     sewing = BRepBuilderAPI_Sewing(1e-4)
-    for face in shape_faces(shape):
+    for face in faces(shape):
         split = GeomConvert_BSplineSurfaceToBezierSurface(BRep_Tool.Surface_s(face))
         patches = TColGeom_Array2OfBezierSurface(1, split.NbUPatches(), 1, split.NbVPatches())
         split.Patches(patches)
@@ -104,7 +104,7 @@ def bench_models() -> None:
 
     import bonecad
     from bonecad.analysis.model import analyse_model
-    from bonecad.occ.tessellate import shape_faces
+    from bonecad.occ.brep import faces
     from bonecad.contours.curves import contour_curves
     from bonecad.nurbs_model.model import build_nurbs
 
@@ -119,7 +119,7 @@ def bench_models() -> None:
             report = analyse_model(name, shape, bone, frame, out, info={})
             wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
         dev = report.deviation
-        print(f"analyse_model {name}: {len(shape_faces(shape))} faces, mesh {len(bone.faces)} triangles: "
+        print(f"analyse_model {name}: {len(faces(shape))} faces, mesh {len(bone.faces)} triangles: "
               f"{wall:.2f} s wall, {cpu:.2f} s process (best of 3; target < {target:g} s; "
               f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores)")
         print(f"  steps {({k: round(v, 2) for k, v in dev.timings_s.items()})}; RMS {dev.mesh_to_cad.stats.rms_mm:.4f} mm, "

@@ -166,10 +166,11 @@ def test_batched_second_derivatives_match_opencascade(kind):
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
     from bonecad.splines.evaluate import SurfaceSet
-    from bonecad.occ.tessellate import face_spline_surface, shape_faces
+    from bonecad.occ.brep import faces
+    from bonecad.occ.tessellate import face_spline_surface
 
     if kind == "rational sphere":
-        face = shape_faces(BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(40.0).Shape(), True).Shape())[0]
+        face = faces(BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(40.0).Shape(), True).Shape())[0]
     else:
         face = two_patches(2)[1]
     surface, native = face_spline_surface(face)

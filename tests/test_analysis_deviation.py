@@ -37,9 +37,9 @@ def test_faces_are_native_bspline(sphere):
     from OCP.BRep import BRep_Tool
     from OCP.Geom import Geom_BSplineSurface
 
-    from bonecad.occ.tessellate import shape_faces
+    from bonecad.occ.brep import faces
 
-    assert all(isinstance(BRep_Tool.Surface_s(f), Geom_BSplineSurface) for f in shape_faces(sphere))
+    assert all(isinstance(BRep_Tool.Surface_s(f), Geom_BSplineSurface) for f in faces(sphere))
 
 
 def test_tessellation_covers_exact_area(sphere_fine):

@@ -21,7 +21,7 @@ from OCP.BRepClass3d import BRepClass3d_SolidClassifier
 from OCP.BRepGProp import BRepGProp
 from OCP.GProp import GProp_GProps
 from OCP.ShapeAnalysis import ShapeAnalysis_FreeBounds
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SHELL
+from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SHELL, TopAbs_WIRE
 from OCP.TopExp import TopExp_Explorer
 from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array2OfReal
@@ -84,6 +84,10 @@ def _subshapes(shape: TopoDS_Shape, kind, cast) -> list:
 
 def edges(shape: TopoDS_Shape) -> list:
     return _subshapes(shape, TopAbs_EDGE, TopoDS.Edge_s)
+
+
+def wires(shape: TopoDS_Shape) -> list:
+    return _subshapes(shape, TopAbs_WIRE, TopoDS.Wire_s)
 
 
 def faces(shape: TopoDS_Shape) -> list:

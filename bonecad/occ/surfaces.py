@@ -18,7 +18,7 @@ from OCP.TopoDS import TopoDS_Face, TopoDS_Shape
 
 from bonecad.splines.curve import BSplineCurve
 from bonecad.errors import FitError, KernelError
-from bonecad.occ.brep import array1, edges, pole_grid
+from bonecad.occ.brep import array1, edges, pole_grid, read_array1
 from bonecad.splines.surface import BSplineSurface
 
 def _knots_and_mults(knots: np.ndarray, periodic: bool) -> tuple[list[float], list[int]]:
@@ -60,8 +60,7 @@ def from_geom_surface(geom: Geom_BSplineSurface, region: str, *, reversed_: bool
                        for b in range(1, nv + 1)] for a in range(1, nu + 1)])
 
     def full(knots, mults, count):
-        seq = np.repeat([knots.Value(i) for i in range(1, knots.Length() + 1)],
-                        [mults.Value(i) for i in range(1, mults.Length() + 1)])
+        seq = np.repeat(read_array1(knots), read_array1(mults, int))
         return (seq - seq[0]) / (seq[-1] - seq[0])
 
     return BSplineSurface(poles, full(geom.UKnots(), geom.UMultiplicities(), nu),

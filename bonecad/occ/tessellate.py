@@ -19,6 +19,7 @@ import numpy as np
 
 from bonecad.errors import InputError, KernelError
 from bonecad.mesh.sampling import triangle_areas
+from bonecad.occ.brep import edges, nonempty_faces, read_array1, wires
 from bonecad.mesh.closest import vertex_normals
 from bonecad.splines.evaluate import SplineSurface, SurfaceSet, project, project_faces
 
@@ -144,24 +145,6 @@ class Tessellation:
         return triangle_areas(self.vertices, self.triangles)
 
 
-def shape_faces(shape) -> list:
-    """The faces of ``shape`` in explorer order (orientation as seen in the shape)."""
-    from OCP.TopAbs import TopAbs_FACE
-    from OCP.TopExp import TopExp_Explorer
-    from OCP.TopoDS import TopoDS
-
-    if shape is None or shape.IsNull():
-        raise InputError("shape is null")
-    faces = []
-    explorer = TopExp_Explorer(shape, TopAbs_FACE)
-    while explorer.More():
-        faces.append(TopoDS.Face_s(explorer.Current()))
-        explorer.Next()
-    if not faces:
-        raise InputError("shape has no faces")
-    return faces
-
-
 def exact_face_area(face, rel_eps: float = 1e-6) -> float:
     """Area of one face (mm^2) by adaptive Gauss integration to relative error ``rel_eps``."""
     from OCP.BRepGProp import BRepGProp
@@ -170,11 +153,6 @@ def exact_face_area(face, rel_eps: float = 1e-6) -> float:
     props = GProp_GProps()
     BRepGProp.SurfaceProperties_s(face, props, rel_eps)
     return float(props.Mass())
-
-
-def _array1(values) -> np.ndarray:
-    """An OCP TColStd_Array1OfReal as a numpy array (``list()`` on it is ~50x slower)."""
-    return np.array([values.Value(i) for i in range(values.Lower(), values.Upper() + 1)], dtype=np.float64)
 
 
 def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
@@ -216,8 +194,8 @@ def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
             bs.SetVNotPeriodic()
     except Standard_Failure:
         return None, False
-    knots_u = _array1(bs.UKnotSequence())
-    knots_v = _array1(bs.VKnotSequence())
+    knots_u = read_array1(bs.UKnotSequence())
+    knots_v = read_array1(bs.VKnotSequence())
     nu, nv = bs.NbUPoles(), bs.NbVPoles()
     poles = np.empty((nu, nv, 4))
     rational = bs.IsURational() or bs.IsVRational()
@@ -284,22 +262,16 @@ def is_natural(face, surface: SplineSurface) -> bool:
     from OCP.BRepAdaptor import BRepAdaptor_Curve2d
     from OCP.BRepTools import BRepTools
     from OCP.GeomAbs import GeomAbs_Line
-    from OCP.TopAbs import TopAbs_EDGE, TopAbs_WIRE
-    from OCP.TopExp import TopExp_Explorer
-    from OCP.TopoDS import TopoDS
 
     u0, u1, v0, v1 = surface.bounds
     fu0, fu1, fv0, fv1 = BRepTools.UVBounds_s(face)
     tol = 1e-9 * max(1.0, abs(u1 - u0), abs(v1 - v0))
     if max(abs(fu0 - u0), abs(fu1 - u1), abs(fv0 - v0), abs(fv1 - v1)) > tol:
         return False
-    wires = TopExp_Explorer(face, TopAbs_WIRE)
-    wires.Next()
-    if wires.More():
+    if len(wires(face)) > 1:
         return False
-    explorer = TopExp_Explorer(face, TopAbs_EDGE)
-    while explorer.More():
-        curve = BRepAdaptor_Curve2d(TopoDS.Edge_s(explorer.Current()), face)
+    for edge in edges(face):
+        curve = BRepAdaptor_Curve2d(edge, face)
         if curve.GetType() != GeomAbs_Line:
             return False
         a = curve.Value(curve.FirstParameter())
@@ -312,7 +284,6 @@ def is_natural(face, surface: SplineSurface) -> bool:
         )
         if not on_side:
             return False
-        explorer.Next()
     return True
 
 
@@ -511,7 +482,7 @@ def tessellate(shape, settings: TessellationSettings | None = None) -> Tessellat
             f"deflection_mm, max_edge_mm and angular_deflection_rad must be > 0, got {settings.deflection_mm}, "
             f"{settings.max_edge_mm}, {settings.angular_deflection_rad}"
         )
-    faces = shape_faces(shape)
+    faces = nonempty_faces(shape)
     count = len(faces)
     surfaces, natural, natives = [], [], []
     for face in faces:
