@@ -28,7 +28,8 @@ from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 from bonecad.mesh.closest import TriangleLocator
 from bonecad.analysis.continuity import seam_continuity
 from bonecad.analysis.deviation import sample_surface, shape_deviation, signed_distance_to_shape
-from bonecad.occ.tessellate import TessellationSettings, tessellate
+from bonecad.mesh.tessellation import TessellationSettings
+from bonecad.occ.tessellate import tessellate
 from bonecad.config import load_config
 
 RADIUS = 40.0
@@ -42,7 +43,7 @@ def main() -> None:
     t_tess = time.perf_counter() - t0
     print(f"tessellation: {len(tess.triangles)} triangles, {t_tess:.2f} s, chord error {tess.chord_error_mm.max():.4f} mm")
 
-    coarse = tessellate(shape, TessellationSettings(deflection_mm=0.1, max_edge_mm=2.0))
+    coarse = tessellate(shape, TessellationSettings.default(deflection_mm=0.1, max_edge_mm=2.0))
     unit = coarse.vertices / RADIUS
     wave = 0.3 * np.sin(3 * np.arctan2(unit[:, 1], unit[:, 0])) * np.cos(2 * np.arcsin(np.clip(unit[:, 2], -1, 1)))
     mesh_v = coarse.vertices + unit * wave[:, None]

@@ -44,7 +44,7 @@ def main() -> None:
     meshes = sorted(DATA.glob("*.stl"))
     if not meshes:
         raise SystemExit(f"no real meshes in {DATA}")
-    settings = TessellationSettings(deflection_mm=0.05, max_edge_mm=1.5)
+    settings = TessellationSettings.default(deflection_mm=0.05, max_edge_mm=1.5)
     header = (f"{'mesh':<24s} {'fill':<5s} {'tri':>7s} {'faces':>5s} {'poles':>6s} {'dV %':>7s} {'refit':>6s} "
               + " ".join(f"<{b:g}mm" for b in BANDS_MM) + "   max mm  (mesh->CAD | CAD->mesh)")
     lines = []

@@ -41,7 +41,7 @@ def main(paths: list[Path]) -> None:
         t_all = time.perf_counter() - t1
         try:
             dev = shape_deviation(bone.vertices, bone.faces, model.shape, sample_points=100_000,
-                                  settings=TessellationSettings(coverage_tolerance=0.01))
+                                  settings=TessellationSettings.default(coverage_tolerance=0.01))
         except KernelError as exc:  # the analysis refuses faces its tessellation covers badly
             dev, dev_error = None, str(exc)
         fs = model.fit.stats

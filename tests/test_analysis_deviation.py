@@ -7,7 +7,8 @@ import pytest
 from bonecad.mesh.closest import TriangleLocator
 from bonecad.analysis.deviation import sample_shape, sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.analysis.statistics import band_edges, deviation_stats, histogram, weighted_percentiles
-from bonecad.occ.tessellate import TessellationSettings, tessellate
+from bonecad.mesh.tessellation import TessellationSettings
+from bonecad.occ.tessellate import tessellate
 from bonecad.config import load_config
 from bonecad.errors import InputError, KernelError
 
@@ -30,7 +31,7 @@ def sphere():
 
 @pytest.fixture(scope="module")
 def sphere_fine(sphere):
-    return tessellate(sphere, TessellationSettings(deflection_mm=0.005))
+    return tessellate(sphere, TessellationSettings.default(deflection_mm=0.005))
 
 
 def test_faces_are_native_bspline(sphere):
@@ -57,11 +58,11 @@ def test_coverage_check_refuses_a_short_tessellation(sphere):
     # a chordal tessellation is always short of the exact area; demanding a
     # surplus makes the check fire, as a partial cover would
     with pytest.raises(KernelError, match="tessellation covers"):
-        tessellate(sphere, TessellationSettings(deflection_mm=0.05, coverage_tolerance=-1e-3, small_face_factor=0.0))
+        tessellate(sphere, TessellationSettings.default(deflection_mm=0.05, coverage_tolerance=-1e-3, small_face_factor=0.0))
 
 
 def test_small_curved_faces_get_their_chordal_allowance():
-    settings = TessellationSettings(deflection_mm=0.05, coverage_tolerance=0.005, small_face_factor=2.0)
+    settings = TessellationSettings.default(deflection_mm=0.05, coverage_tolerance=0.005, small_face_factor=2.0)
     allowed = settings.allowed_shortfall(np.array([1.0, 0.25, 10000.0]))
     assert allowed[0] == pytest.approx(0.1) and allowed[1] == pytest.approx(0.2)
     assert allowed[2] == pytest.approx(0.005)  # large faces: the plain tolerance, partial covers refused
@@ -82,7 +83,7 @@ def test_exact_projection_matches_analytic_sphere(sphere_fine):
 
 def test_sphere_against_its_own_tessellation_is_at_the_tessellation_bound(sphere):
     """Done-when of issue 4: a B-spline sphere vs its own tessellation."""
-    coarse = tessellate(sphere, TessellationSettings(deflection_mm=0.05))
+    coarse = tessellate(sphere, TessellationSettings.default(deflection_mm=0.05))
     bound = coarse.chord_error_mm.max()
     result = shape_deviation(coarse.vertices, coarse.triangles, sphere, sample_points=20000)
     fwd = result.mesh_to_cad
@@ -117,7 +118,7 @@ def test_vertex_deviation_for_the_colour_map_is_within_the_chord_error(sphere, s
 
 def test_shape_samples_lie_on_the_exact_surface_with_area_weights(sphere):
     """Caps of a sphere (area 2 pi R h): their weighted share of samples drawn on a coarse tessellation."""
-    coarse = tessellate(sphere, TessellationSettings(deflection_mm=0.05))
+    coarse = tessellate(sphere, TessellationSettings.default(deflection_mm=0.05))
     count = 100000
     points, weights, on_surface = sample_shape(coarse, count, seed=2)
     assert on_surface.all()
@@ -152,8 +153,8 @@ def test_cylinder_with_planar_caps():
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeCylinder
 
     cyl = _nurbs(BRepPrimAPI_MakeCylinder(5.0, 20.0).Shape())
-    fine = tessellate(cyl, TessellationSettings(deflection_mm=0.01))
-    coarse = tessellate(cyl, TessellationSettings(deflection_mm=0.1))
+    fine = tessellate(cyl, TessellationSettings.default(deflection_mm=0.01))
+    coarse = tessellate(cyl, TessellationSettings.default(deflection_mm=0.1))
     result = shape_deviation(coarse.vertices, coarse.triangles, cyl, sample_points=20000, tessellation=fine)
     fwd = result.mesh_to_cad
     p = fwd.points
@@ -168,7 +169,7 @@ def test_chord_error_near_points_is_the_largest_of_the_triangles_within_reach():
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeCylinder
 
     cyl = _nurbs(BRepPrimAPI_MakeCylinder(5.0, 20.0).Shape())
-    settings = TessellationSettings(deflection_mm=0.1)
+    settings = TessellationSettings.default(deflection_mm=0.1)
     every = tessellate(cyl, settings).chord_error_mm
     side = int(np.argmax(every))  # the curved face; the planar caps have no chord error
     assert every[side] > 0 and np.sort(every)[-2] < 1e-9
@@ -266,7 +267,7 @@ def test_foot_points_across_a_face_boundary_are_refined_on_the_neighbour():
     from tests.test_analysis_continuity import two_patches
 
     split, whole = two_patches(1)
-    settings = TessellationSettings(deflection_mm=0.5, max_edge_mm=8.0)
+    settings = TessellationSettings.default(deflection_mm=0.5, max_edge_mm=8.0)
     one = tessellate(whole, settings)
     two = tessellate(split, settings)
     rng = np.random.default_rng(4)

@@ -15,7 +15,10 @@ from tests.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, 
 from bonecad.render.figures import deviation_map_png, histogram_png
 from bonecad.export.report import SCHEMA, ModelReport, write_report
 from bonecad.analysis.statistics import Histogram
-from bonecad.occ.tessellate import TessellationSettings, brepmesh_face, face_spline_surface, tessellate
+from bonecad.mesh.tessellation import TessellationSettings
+from bonecad.occ.brepmesh import brepmesh_face
+from bonecad.occ.read_faces import face_spline_surface
+from bonecad.occ.tessellate import tessellate
 from bonecad.errors import InputError
 
 RADIUS = 10.0
@@ -37,7 +40,7 @@ def wavy_mesh(tess, amplitude_mm: float, offset_mm: float = 0.0):
     # (fixed here, so the golden does not move with the analysis' own tessellator)
     face = tess.faces[0]
     surface, native = face_spline_surface(face)
-    settings = TessellationSettings(deflection_mm=0.05, angular_deflection_rad=0.2, coverage_tolerance=0.005,
+    settings = TessellationSettings.default(deflection_mm=0.05, angular_deflection_rad=0.2, coverage_tolerance=0.005,
                                     area_rel_eps=1e-6, max_edge_mm=1.0)
     v, _, triangles, _ = brepmesh_face(face, 0, surface, native, False, settings)
     unit = v / np.linalg.norm(v, axis=1, keepdims=True)

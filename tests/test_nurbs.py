@@ -138,7 +138,7 @@ def test_deviation_from_the_phantom_mesh(ring_model, phantom):
 
     # 0.1 mm chords are enough: every sample is refined on the exact surface (checked below)
     result = shape_deviation(phantom.vertices, phantom.faces, ring_model.shape, sample_points=20000,
-                             settings=TessellationSettings(deflection_mm=0.1, max_edge_mm=2.0))
+                             settings=TessellationSettings.default(deflection_mm=0.1, max_edge_mm=2.0))
     for direction in (result.mesh_to_cad, result.cad_to_mesh):
         dev, w = np.abs(direction.deviation_mm), direction.weights
         assert direction.refined.mean() > 0.99

@@ -81,7 +81,7 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
     # small, strongly curved faces (apex caps, plateau rim) lose up to ~0.6 % of area to the
     # chordal tessellation: allow 1 % instead of the 0.5 % default
     dev = shape_deviation(phantom.vertices, phantom.faces, shape, sample_points=20000,
-                          settings=TessellationSettings(coverage_tolerance=0.01))
+                          settings=TessellationSettings.default(coverage_tolerance=0.01))
     d = np.abs(dev.mesh_to_cad.deviation_mm)
     w = dev.mesh_to_cad.weights
     assert w[d <= 0.25].sum() / w.sum() >= 0.99

@@ -60,7 +60,7 @@ def test_fit_to_the_staircase_recovers_the_bone(truth, staircase):
     # surface farther from the bone (92 % within 0.25 mm): the noise stop needs 1228.
     assert model.control_points < 3000
     dev = shape_deviation(truth.vertices, truth.faces, model.shape, sample_points=50_000,
-                          settings=TessellationSettings(coverage_tolerance=0.01))
+                          settings=TessellationSettings.default(coverage_tolerance=0.01))
     bone_to_model = dev.mesh_to_cad
     assert bone_to_model.share_within(0.25) >= 0.96
     assert np.abs(bone_to_model.deviation_mm).max() <= 1.0

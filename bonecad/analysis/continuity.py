@@ -18,7 +18,7 @@ can be higher if poles happen to line up). Bezier faces have no interior knots.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,6 +30,10 @@ log = logging.getLogger(__name__)
 
 #: seam classes, worst first
 CLASSES = ("gap", "C0", "G1", "G2")
+
+#: the ``[analysis]`` settings of :meth:`ContinuityTolerances.from_analysis`
+_ANALYSIS_KEYS = ("continuity_gap_mm", "continuity_angle_deg", "continuity_curvature_jump",
+                  "continuity_curvature_radius_ref_mm")
 
 #: C^k reported where there is no interior knot (a polynomial piece is C-infinity)
 SMOOTH = 99
@@ -64,11 +68,12 @@ class ContinuityTolerances:
                    float(continuity_curvature_radius_ref_mm))
 
     @classmethod
-    def default(cls) -> ContinuityTolerances:
-        """From ``[analysis]`` in defaults.toml."""
+    def default(cls, **overrides: float) -> ContinuityTolerances:
+        """From ``[analysis]`` in defaults.toml, with ``overrides`` (field name -> value)."""
         from bonecad.config import load_config
 
-        return cls.from_analysis(**{k: v for k, v in load_config()["analysis"].items() if k.startswith("continuity_")})
+        analysis = load_config()["analysis"]
+        return replace(cls.from_analysis(**{key: analysis[key] for key in _ANALYSIS_KEYS}), **overrides)
 
 
 @dataclass(frozen=True)

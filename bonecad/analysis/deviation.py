@@ -43,7 +43,8 @@ from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.closest import TriangleLocator, vertex_normals
 from bonecad.splines.evaluate import project_faces
 from bonecad.analysis.statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram, share_within
-from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
+from bonecad.mesh.tessellation import Tessellation, TessellationSettings
+from bonecad.occ.tessellate import tessellate
 
 #: the anatomical regions a caller can label samples with
 REGIONS = ("distal", "shaft", "proximal")

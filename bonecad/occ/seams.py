@@ -26,7 +26,7 @@ from OCP.gp import gp_Pnt2d, gp_Vec2d
 
 from bonecad.errors import InputError
 from bonecad.occ.brep import edges, face_is_reversed, nonempty_faces, read_array1
-from bonecad.occ.tessellate import face_spline_surface
+from bonecad.occ.read_faces import face_spline_surface
 from bonecad.splines.evaluate import SurfaceSet
 
 log = logging.getLogger(__name__)
