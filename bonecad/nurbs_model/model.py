@@ -21,6 +21,7 @@ from bonecad.contours.curves import ContourSet
 from bonecad.errors import InputError, KernelError
 from bonecad.occ import brep
 from bonecad.occ import surfaces as occ
+from bonecad.occ.interop import to_build123d
 from bonecad.nurbs_model.loft import BoneSurfaces, RefitReport, bone_surfaces, ring_cap
 from bonecad.splines.surface import BSplineSurface
 
@@ -73,9 +74,7 @@ class NurbsModel:
     @property
     def solid(self):
         """The model as a build123d Solid."""
-        from build123d import Solid
-
-        return Solid(self.shape)
+        return to_build123d(self.shape)
 
     def __getstate__(self) -> dict:
         """Picklable (to hand the model between processes): the solid as OpenCascade's binary B-rep."""
@@ -172,8 +171,7 @@ def build_nurbs(contours: ContourSet, *, apex_fill: ApexFill | None = None, conf
         final.append(s)
     for name in ("distal_apex_cap", "proximal_apex_cap"):
         if apex_fill == "patch":
-            geom = occ.BRep_Tool.Surface_s(dict(face_names)[name])
-            final.append(occ.from_geom_surface(geom, name, reversed_=reversed_[name]))
+            final.append(occ.from_face(dict(face_names)[name], name, reversed_=reversed_[name]))
     final.sort(key=lambda s: FACE_NAMES.index(s.region))
     timings["sew"] = time.perf_counter() - start
 

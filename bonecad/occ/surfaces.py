@@ -68,6 +68,11 @@ def from_geom_surface(geom: Geom_BSplineSurface, region: str, *, reversed_: bool
                           region=region, reversed=reversed_)
 
 
+def from_face(face: TopoDS_Face, region: str, *, reversed_: bool = False) -> BSplineSurface:
+    """The numpy surface of a face lying on a non-periodic polynomial B-spline (:func:`from_geom_surface`)."""
+    return from_geom_surface(BRep_Tool.Surface_s(face), region, reversed_=reversed_)
+
+
 def make_face(surface: BSplineSurface, *, tolerance_mm: float = 1e-7) -> TopoDS_Face:
     """A face on the whole surface (natural bounds; a collapsed pole row becomes a degenerate edge)."""
     maker = BRepBuilderAPI_MakeFace(to_geom_surface(surface), tolerance_mm)
