@@ -26,9 +26,10 @@ from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
 from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
 from bonecad.mesh.closest import TriangleLocator
-from bonecad.occ.continuity import seam_continuity
+from bonecad.analysis.continuity import seam_continuity
 from bonecad.analysis.deviation import sample_surface, shape_deviation, signed_distance_to_shape
-from bonecad.occ.tessellate import TessellationSettings, tessellate
+from bonecad.mesh.tessellation import TessellationSettings
+from bonecad.occ.tessellate import tessellate
 from bonecad.config import load_config
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.settings import Settings
@@ -47,7 +48,7 @@ def main() -> None:
     t_tess = time.perf_counter() - t0
     print(f"tessellation: {len(tess.triangles)} triangles, {t_tess:.2f} s, chord error {tess.chord_error_mm.max():.4f} mm")
 
-    coarse = tessellate(shape, TessellationSettings(deflection_mm=0.1, max_edge_mm=2.0))
+    coarse = tessellate(shape, TessellationSettings.default(deflection_mm=0.1, max_edge_mm=2.0))
     unit = coarse.vertices / RADIUS
     wave = 0.3 * np.sin(3 * np.arctan2(unit[:, 1], unit[:, 0])) * np.cos(2 * np.arcsin(np.clip(unit[:, 2], -1, 1)))
     mesh_v = coarse.vertices + unit * wave[:, None]
@@ -70,7 +71,7 @@ def main() -> None:
           f"(bound for unrefined: {tess.chord_error_mm.max():.4f} mm)")
 
     t0 = time.perf_counter()
-    result = shape_deviation(mesh_v, coarse.triangles, shape, edges_mm=BANDS_MM, sample_points=count, tessellation=tess)
+    result = shape_deviation(mesh_v, coarse.triangles, tess, edges_mm=BANDS_MM, sample_points=count)
     print(f"shape_deviation both ways, {count} points each: {time.perf_counter() - t0:.2f} s "
           f"{ {k: round(v, 2) for k, v in result.timings_s.items()} }")
     s = result.mesh_to_cad.stats
@@ -89,10 +90,10 @@ def bezier_shell(shape):
     from OCP.GeomConvert import GeomConvert_BSplineSurfaceToBezierSurface
     from OCP.TColGeom import TColGeom_Array2OfBezierSurface
 
-    from bonecad.occ.tessellate import shape_faces
+    from bonecad.occ.brep import faces
 
     sewing = BRepBuilderAPI_Sewing(1e-4)
-    for face in shape_faces(shape):
+    for face in faces(shape):
         split = GeomConvert_BSplineSurfaceToBezierSurface(BRep_Tool.Surface_s(face))
         patches = TColGeom_Array2OfBezierSurface(1, split.NbUPatches(), 1, split.NbVPatches())
         split.Patches(patches)
@@ -109,7 +110,7 @@ def bench_models() -> None:
 
     import bonecad
     from bonecad.analysis.model import analyse_model
-    from bonecad.occ.tessellate import shape_faces
+    from bonecad.occ.brep import faces
     from bonecad.contours.curves import contour_curves
     from bonecad.nurbs_model.model import build_nurbs
 
@@ -124,7 +125,7 @@ def bench_models() -> None:
             report = analyse_model(name, shape, bone, frame, out, info={})
             wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
         dev = report.deviation
-        print(f"analyse_model {name}: {len(shape_faces(shape))} faces, mesh {len(bone.faces)} triangles: "
+        print(f"analyse_model {name}: {len(faces(shape))} faces, mesh {len(bone.faces)} triangles: "
               f"{wall:.2f} s wall, {cpu:.2f} s process (best of 3; target < {target:g} s; "
               f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores)")
         print(f"  steps {({k: round(v, 2) for k, v in dev.timings_s.items()})}; RMS {dev.mesh_to_cad.stats.rms_mm:.4f} mm, "

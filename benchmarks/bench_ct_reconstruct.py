@@ -15,6 +15,7 @@ from bonecad.imaging import mesh_to_ct, segment_bone
 from bonecad.nurbs_model.model import build_nurbs
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.settings import Settings
+from bonecad.occ.tessellate import tessellate
 
 #: the shipped [analysis] histogram bands (mm)
 BANDS_MM = settings_band_edges(Settings.load().analysis)
@@ -25,8 +26,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 def figures(model_bone, reference, reference_frame):
     frame = bonecad.anatomical_frame(model_bone)
     shape = build_nurbs(contour_curves(model_bone, frame)).shape
-    stats = shape_deviation(reference.vertices, reference.faces, shape, regions=region_labels(reference_frame),
-                            edges_mm=BANDS_MM, sample_points=100_000).mesh_to_cad.stats
+    stats = shape_deviation(reference.vertices, reference.faces, tessellate(shape, TESSELLATION), regions=region_labels(reference_frame), edges_mm=BANDS_MM, sample_points=100_000).mesh_to_cad.stats
     return {"rms": stats.rms_mm, "p99": float(stats.abs_percentiles_mm[3]),
             "max": max(stats.max_outside_mm, stats.max_inside_mm)}
 

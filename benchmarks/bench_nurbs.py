@@ -23,6 +23,7 @@ import bonecad
 from bonecad.analysis import TessellationSettings, shape_deviation
 from bonecad.contours.curves import contour_curves
 from bonecad.nurbs_model import build_nurbs
+from bonecad.occ.tessellate import tessellate
 
 DATA = Path(os.environ.get("BONECAD_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "tibia"
 BANDS_MM = (0.1, 0.25, 0.5, 1.0)
@@ -44,7 +45,7 @@ def main() -> None:
     meshes = sorted(DATA.glob("*.stl"))
     if not meshes:
         raise SystemExit(f"no real meshes in {DATA}")
-    settings = TessellationSettings(deflection_mm=0.05, max_edge_mm=1.5)
+    settings = TessellationSettings.default(deflection_mm=0.05, max_edge_mm=1.5)
     header = (f"{'mesh':<24s} {'fill':<5s} {'tri':>7s} {'faces':>5s} {'poles':>6s} {'dV %':>7s} {'refit':>6s} "
               + " ".join(f"<{b:g}mm" for b in BANDS_MM) + "   max mm  (mesh->CAD | CAD->mesh)")
     lines = []
@@ -62,8 +63,7 @@ def main() -> None:
         vol = mesh_volume(bone.vertices, bone.faces)
         for fill in ("ring", "patch"):
             model = build_nurbs(contours, apex_fill=fill)
-            result = shape_deviation(bone.vertices, bone.faces, model.shape, edges_mm=BANDS_MM, sample_points=args.samples,
-                                     settings=settings)
+            result = shape_deviation(bone.vertices, bone.faces, tessellate(model.shape, settings), edges_mm=BANDS_MM, sample_points=args.samples)
             fwd, fwd_max = bands(result.mesh_to_cad)
             back, back_max = bands(result.cad_to_mesh)
             refit = max(r.max_deviation_mm for r in model.refits)

@@ -38,6 +38,7 @@ from bonecad.mesh.intake import prepare_bone
 from bonecad.tspline_model import build_tspline_model
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.settings import Settings
+from bonecad.occ.tessellate import tessellate
 
 #: the shipped [analysis] histogram bands (mm)
 BANDS_MM = settings_band_edges(Settings.load().analysis)
@@ -48,8 +49,7 @@ WITHIN_MM = 0.25
 
 
 def deviation_line(model_shape, vertices, faces) -> str:
-    dev = shape_deviation(vertices, faces, model_shape, edges_mm=BANDS_MM, sample_points=100_000,
-                          settings=TessellationSettings(coverage_tolerance=0.01))
+    dev = shape_deviation(vertices, faces, tessellate(model_shape, TessellationSettings(coverage_tolerance=0.01)), edges_mm=BANDS_MM, sample_points=100_000)
     m2c, c2m = dev.mesh_to_cad, dev.cad_to_mesh
     return (f"mesh->CAD within {WITHIN_MM} mm {m2c.share_within(WITHIN_MM):.4f}, max {np.abs(m2c.deviation_mm).max():.3f}, "
             f"RMS {m2c.stats.rms_mm:.3f} mm; CAD->mesh within {c2m.share_within(WITHIN_MM):.4f}, "

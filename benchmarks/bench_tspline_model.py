@@ -24,6 +24,7 @@ from bonecad.errors import KernelError
 from bonecad.tspline_model import build_tspline_model
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.settings import Settings
+from bonecad.occ.tessellate import tessellate
 
 #: the shipped [analysis] histogram bands (mm)
 BANDS_MM = settings_band_edges(Settings.load().analysis)
@@ -45,8 +46,7 @@ def main(paths: list[Path]) -> None:
         tp_time = compared.timings_s.get("tensor_product", float("nan"))
         t_all = time.perf_counter() - t1
         try:
-            dev = shape_deviation(bone.vertices, bone.faces, model.shape, edges_mm=BANDS_MM, sample_points=100_000,
-                                  settings=TessellationSettings(coverage_tolerance=0.01))
+            dev = shape_deviation(bone.vertices, bone.faces, tessellate(model.shape, TessellationSettings(coverage_tolerance=0.01)), edges_mm=BANDS_MM, sample_points=100_000)
         except KernelError as exc:  # the analysis refuses faces its tessellation covers badly
             dev, dev_error = None, str(exc)
         fs = model.fit.stats

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bonecad.occ.continuity import knot_continuity, seam_continuity
+from bonecad.analysis.continuity import knot_continuity, seam_continuity
 from bonecad.render.figures import VIEWS, render_tessellation_normals, screen_axes, zebra_image, zebra_png
 from bonecad.occ.tessellate import tessellate
 from bonecad.errors import InputError
@@ -165,10 +165,11 @@ def test_batched_second_derivatives_match_opencascade(kind):
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
     from bonecad.splines.evaluate import SurfaceSet
-    from bonecad.occ.tessellate import face_spline_surface, shape_faces
+    from bonecad.occ.brep import faces
+    from bonecad.occ.read_faces import face_spline_surface
 
     if kind == "rational sphere":
-        face = shape_faces(BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(40.0).Shape(), True).Shape())[0]
+        face = faces(BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(40.0).Shape(), True).Shape())[0]
     else:
         face = two_patches(2)[1]
     surface, native = face_spline_surface(face)

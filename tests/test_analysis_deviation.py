@@ -9,7 +9,7 @@ from bonecad.analysis.deviation import sample_shape, sample_surface, shape_devia
 from bonecad.analysis.statistics import band_edges, deviation_stats, histogram, weighted_percentiles
 from bonecad.occ.tessellate import tessellate
 from bonecad.errors import InputError, KernelError
-from tests.defaults import TESSELLATION, BANDS_MM
+from tests.defaults import BANDS_MM, SETTINGS, TESSELLATION
 from dataclasses import replace
 
 
@@ -39,9 +39,9 @@ def test_faces_are_native_bspline(sphere):
     from OCP.BRep import BRep_Tool
     from OCP.Geom import Geom_BSplineSurface
 
-    from bonecad.occ.tessellate import shape_faces
+    from bonecad.occ.brep import faces
 
-    assert all(isinstance(BRep_Tool.Surface_s(f), Geom_BSplineSurface) for f in shape_faces(sphere))
+    assert all(isinstance(BRep_Tool.Surface_s(f), Geom_BSplineSurface) for f in faces(sphere))
 
 
 def test_tessellation_covers_exact_area(sphere_fine):
@@ -86,7 +86,7 @@ def test_sphere_against_its_own_tessellation_is_at_the_tessellation_bound(sphere
     """Done-when of issue 4: a B-spline sphere vs its own tessellation."""
     coarse = tessellate(sphere, replace(TESSELLATION, deflection_mm=0.05))
     bound = coarse.chord_error_mm.max()
-    result = shape_deviation(coarse.vertices, coarse.triangles, sphere, edges_mm=BANDS_MM, sample_points=20000)
+    result = shape_deviation(coarse.vertices, coarse.triangles, tessellate(sphere, TESSELLATION), edges_mm=BANDS_MM, sample_points=20000)
     fwd = result.mesh_to_cad
     exact = np.linalg.norm(fwd.points, axis=1) - RADIUS
     np.testing.assert_allclose(fwd.deviation_mm, exact, atol=1e-8)
@@ -109,7 +109,7 @@ def test_vertex_deviation_for_the_colour_map_is_within_the_chord_error(sphere, s
 
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    result = shape_deviation(vertices, faces, sphere, edges_mm=BANDS_MM, sample_points=2000, tessellation=sphere_fine)
+    result = shape_deviation(vertices, faces, sphere_fine, edges_mm=BANDS_MM, sample_points=2000)
     exact = np.linalg.norm(vertices, axis=1) - RADIUS
     assert np.abs(exact).max() < 1e-9
     error = np.abs(result.vertex_deviation_mm - exact)
@@ -133,9 +133,7 @@ def test_shape_samples_lie_on_the_exact_surface_with_area_weights(sphere):
 
 def test_sign_is_positive_for_a_mesh_outside_the_model(sphere, sphere_fine):
     scale = 1.01  # mesh 0.1 mm outside the sphere everywhere
-    result = shape_deviation(
-        sphere_fine.vertices * scale, sphere_fine.triangles, sphere, edges_mm=BANDS_MM, sample_points=5000, tessellation=sphere_fine
-    )
+    result = shape_deviation(sphere_fine.vertices * scale, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM, sample_points=5000)
     fwd, back = result.mesh_to_cad, result.cad_to_mesh
     assert fwd.stats.mean_mm == pytest.approx(0.1, abs=0.01)
     assert back.stats.mean_mm == pytest.approx(0.1, abs=0.01)
@@ -156,7 +154,7 @@ def test_cylinder_with_planar_caps():
     cyl = _nurbs(BRepPrimAPI_MakeCylinder(5.0, 20.0).Shape())
     fine = tessellate(cyl, replace(TESSELLATION, deflection_mm=0.01))
     coarse = tessellate(cyl, replace(TESSELLATION, deflection_mm=0.1))
-    result = shape_deviation(coarse.vertices, coarse.triangles, cyl, edges_mm=BANDS_MM, sample_points=20000, tessellation=fine)
+    result = shape_deviation(coarse.vertices, coarse.triangles, fine, edges_mm=BANDS_MM, sample_points=20000)
     fwd = result.mesh_to_cad
     p = fwd.points
     on_side = (p[:, 2] > 1e-6) & (p[:, 2] < 20 - 1e-6)
@@ -185,10 +183,7 @@ def test_regions_partition_the_histogram(sphere, sphere_fine):
     def regions(points):
         return np.where(points[:, 2] < -5, "distal", np.where(points[:, 2] > 5, "proximal", "shaft"))
 
-    result = shape_deviation(
-        sphere_fine.vertices * 1.02, sphere_fine.triangles, sphere, edges_mm=BANDS_MM, sample_points=6000,
-        regions=regions, tessellation=sphere_fine,
-    )
+    result = shape_deviation(sphere_fine.vertices * 1.02, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM, sample_points=6000, regions=regions)
     fwd = result.mesh_to_cad
     assert set(fwd.region_stats) == {"distal", "shaft", "proximal"}
     total = sum(fwd.region_stats[r].area_mm2 for r in fwd.region_stats)
@@ -201,10 +196,7 @@ def test_regions_partition_the_histogram(sphere, sphere_fine):
 
 def test_bad_region_labels_are_refused(sphere, sphere_fine):
     with pytest.raises(InputError, match="unknown region labels"):
-        shape_deviation(
-            sphere_fine.vertices, sphere_fine.triangles, sphere, edges_mm=BANDS_MM, sample_points=100,
-            regions=lambda p: np.full(len(p), "femur"), tessellation=sphere_fine,
-        )
+        shape_deviation(sphere_fine.vertices, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM, sample_points=100, regions=lambda p: np.full(len(p), "femur"))
 
 
 def test_closest_points_match_brute_force():

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from bonecad.occ.continuity import knot_continuity, seam_continuity
+from bonecad.analysis.continuity import knot_continuity, seam_continuity
 from bonecad.analysis.deviation import shape_deviation
 from tests.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, compare_histogram
 from bonecad.render.figures import deviation_map_png, histogram_png
@@ -17,7 +17,9 @@ from bonecad.analysis.model import ModelReport
 from bonecad.export import export
 from bonecad.export.report import SCHEMA, ReportDocument
 from bonecad.analysis.statistics import Histogram
-from bonecad.occ.tessellate import brepmesh_face, face_spline_surface, tessellate
+from bonecad.occ.brepmesh import brepmesh_face
+from bonecad.occ.read_faces import face_spline_surface
+from bonecad.occ.tessellate import tessellate
 from bonecad.errors import InputError
 from tests.defaults import TESSELLATION, CONTINUITY, BANDS_MM
 from dataclasses import replace
@@ -57,7 +59,7 @@ def _regions(points):
 def _deviation(sphere, offset_mm=0.0):
     shape, tess = sphere
     v, f = wavy_mesh(tess, 0.3, offset_mm)
-    return v, f, shape_deviation(v, f, shape, edges_mm=BANDS_MM, sample_points=20000, regions=_regions, tessellation=tess)
+    return v, f, shape_deviation(v, f, tess, edges_mm=BANDS_MM, sample_points=20000, regions=_regions)
 
 
 def test_golden_histogram_passes_on_the_model_and_catches_a_perturbed_one(sphere):

@@ -21,6 +21,7 @@ from bonecad.splines.surface import interpolate_clamped, interpolate_periodic
 from .conftest import real_mesh_params
 from tests.defaults import SETTINGS, TESSELLATION, BANDS_MM
 from dataclasses import replace
+from bonecad.occ.tessellate import tessellate
 
 
 
@@ -141,8 +142,7 @@ def test_deviation_from_the_phantom_mesh(ring_model, phantom):
     from bonecad.analysis import shape_deviation
 
     # 0.1 mm chords are enough: every sample is refined on the exact surface (checked below)
-    result = shape_deviation(phantom.vertices, phantom.faces, ring_model.shape, edges_mm=BANDS_MM, sample_points=20000,
-                             settings=replace(TESSELLATION, deflection_mm=0.1, max_edge_mm=2.0))
+    result = shape_deviation(phantom.vertices, phantom.faces, tessellate(ring_model.shape, replace(TESSELLATION, deflection_mm=0.1, max_edge_mm=2.0)), edges_mm=BANDS_MM, sample_points=20000)
     for direction in (result.mesh_to_cad, result.cad_to_mesh):
         dev, w = np.abs(direction.deviation_mm), direction.weights
         assert direction.refined.mean() > 0.99

@@ -13,6 +13,7 @@ import pytest
 from .conftest import TIBIA_DIR
 from tests.defaults import SETTINGS, TESSELLATION, BANDS_MM
 from dataclasses import replace
+from bonecad.occ.tessellate import tessellate
 
 
 SMOOTH_TIBIA = TIBIA_DIR / "LHDL_CT_tibia_no_fib_r.stl"
@@ -62,8 +63,7 @@ def test_fit_to_the_staircase_recovers_the_bone(truth, staircase):
     # Chasing the steps to the 20000-point budget took 19484 points and left the
     # surface farther from the bone (92 % within 0.25 mm): the noise stop needs 1228.
     assert model.control_points < 3000
-    dev = shape_deviation(truth.vertices, truth.faces, model.shape, edges_mm=BANDS_MM, sample_points=50_000,
-                          settings=replace(TESSELLATION, coverage_tolerance=0.01))
+    dev = shape_deviation(truth.vertices, truth.faces, tessellate(model.shape, replace(TESSELLATION, coverage_tolerance=0.01)), edges_mm=BANDS_MM, sample_points=50_000)
     bone_to_model = dev.mesh_to_cad
     assert bone_to_model.share_within(0.25) >= 0.96
     assert np.abs(bone_to_model.deviation_mm).max() <= 1.0

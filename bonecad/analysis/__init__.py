@@ -11,7 +11,8 @@ the NURBS baseline and the T-spline model share it:
 """
 from bonecad.analysis.deviation import DeviationResult, DirectionResult, sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.analysis.statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
-from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
+from bonecad.mesh.tessellation import Tessellation, TessellationSettings
+from bonecad.occ.tessellate import tessellate
 
 __all__ = [
     "DeviationResult",

@@ -13,7 +13,7 @@ Method and error bound
    a bounding-box tree).
 2. On faces with a spline surface (all B-spline/Bezier faces, and analytic faces
    converted exactly), the point is projected onto the exact surface by
-   Gauss-Newton from the (u, v) of that nearest point (``nurbs_eval.project``).
+   Gauss-Newton from the (u, v) of that nearest point (``splines.project.project_faces``).
    The result is accepted when the foot point is a stationary point (tangential
    residual below ``residual_tol_mm``): the distance is then exact to rounding
    (1e-9 mm) for that foot point, and the foot point is the global nearest
@@ -42,7 +42,7 @@ from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.closest import TriangleLocator, vertex_normals
 from bonecad.splines.project import project_faces
 from bonecad.analysis.statistics import DeviationStats, Histogram, deviation_stats, histogram, share_within
-from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
+from bonecad.mesh.tessellation import Tessellation
 
 #: the anatomical regions a caller can label samples with
 REGIONS = ("distal", "shaft", "proximal")
@@ -341,34 +341,30 @@ def summarise(
 def shape_deviation(
     vertices: np.ndarray,
     faces: np.ndarray,
-    shape,
+    tessellation: Tessellation,
     *,
     regions: RegionSpec = None,
     sample_points: int,
     edges_mm: np.ndarray,
     seed: int = 0,
-    tessellation: Tessellation | None = None,
-    settings: TessellationSettings | None = None,
 ) -> DeviationResult:
-    """Deviation between a triangle mesh (``vertices`` (n, 3) mm, ``faces`` (m, 3)) and ``shape``.
+    """Deviation between a triangle mesh (``vertices`` (n, 3) mm, ``faces`` (m, 3)) and a CAD shape,
+    given by its tessellation with exact surfaces (``bonecad.occ.tessellate``; a closed shell or
+    solid, faces oriented outwards).
 
     Parameters
     ----------
-    shape : OCP TopoDS_Shape (closed shell or solid; faces oriented outwards)
     regions : function of (N, 3) points returning N labels from :data:`REGIONS`,
         applied to the samples of both directions; None for no regions
     sample_points : samples per direction (``[analysis] sample_points``)
     edges_mm : histogram band edges (``statistics.band_edges``)
     seed : seed of the area-weighted sampling (same seed, same samples)
-    tessellation : reuse a tessellation of ``shape`` (else one is made)
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     count = sample_points
     timings = {}
-    t0 = time.perf_counter()
-    tess = tessellation or tessellate(shape, settings)
-    timings["tessellate"] = time.perf_counter() - t0
+    tess = tessellation
 
     t0 = time.perf_counter()
     samples = sample_surface(vertices, faces, count, seed=seed)

@@ -16,9 +16,10 @@ from bonecad.analysis.deviation import DeviationResult, shape_deviation
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.mesh.bone_mesh import BoneMesh
-from bonecad.occ.continuity import (ContinuityTolerances, KnotContinuity, SeamContinuity, knot_continuity,
-                                    seam_continuity)
-from bonecad.occ.tessellate import Tessellation, TessellationSettings, tessellate
+from bonecad.analysis.continuity import (ContinuityTolerances, KnotContinuity, SeamContinuity, knot_continuity,
+                                         seam_continuity)
+from bonecad.mesh.tessellation import Tessellation, TessellationSettings
+from bonecad.occ.tessellate import tessellate
 from bonecad.settings import AnalysisSettings
 
 log = logging.getLogger(__name__)
@@ -79,12 +80,11 @@ def tessellate_model(shape, settings: AnalysisSettings) -> Tessellation:
     return tessellate(shape, tessellation_settings(settings))
 
 
-def model_deviation(shape, tess: Tessellation, bone: BoneMesh, frame: AnatomicalFrame,
+def model_deviation(tess: Tessellation, bone: BoneMesh, frame: AnatomicalFrame,
                     settings: AnalysisSettings) -> DeviationResult:
     """Signed deviation between the bone mesh and the model, both ways, overall and per region."""
-    deviation = shape_deviation(bone.vertices, bone.faces, shape, regions=region_labels(frame),
-                                sample_points=settings.sample_points, edges_mm=settings_band_edges(settings),
-                                tessellation=tess)
+    deviation = shape_deviation(bone.vertices, bone.faces, tess, regions=region_labels(frame),
+                                sample_points=settings.sample_points, edges_mm=settings_band_edges(settings))
     stats = deviation.mesh_to_cad.stats
     log.info("RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", stats.rms_mm, stats.max_outside_mm,
              stats.max_inside_mm)

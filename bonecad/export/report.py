@@ -44,7 +44,7 @@ import numpy as np
 from bonecad.errors import InputError
 from bonecad.export import exporter
 from bonecad.staging import staged_file
-from bonecad.occ.continuity import CLASSES, KnotContinuity, SeamContinuity
+from bonecad.analysis.continuity import CLASSES, KnotContinuity, SeamContinuity
 from bonecad.analysis.deviation import DeviationResult
 from bonecad.analysis.model import ModelReport
 

@@ -19,6 +19,7 @@ from bonecad.errors import KernelError
 from bonecad.occ import brep
 from bonecad.occ.pickling import ShapePickling
 from bonecad.occ import surfaces as occ
+from bonecad.occ.interop import to_build123d
 from bonecad.nurbs_model.loft import BoneSurfaces, RefitReport, bone_surfaces, ring_cap
 from bonecad.settings import ApexFill, NurbsSettings
 from bonecad.splines.surface import BSplineSurface
@@ -71,9 +72,7 @@ class NurbsModel(ShapePickling):
     @property
     def solid(self):
         """The model as a build123d Solid."""
-        from build123d import Solid
-
-        return Solid(self.shape)
+        return to_build123d(self.shape)
 
     def surface(self, region: str) -> BSplineSurface:
         for s in self.surfaces:
@@ -156,8 +155,7 @@ def build_nurbs(contours: ContourSet, *, settings: NurbsSettings) -> NurbsModel:
         final.append(s)
     for name in ("distal_apex_cap", "proximal_apex_cap"):
         if apex_fill == "patch":
-            geom = occ.BRep_Tool.Surface_s(dict(face_names)[name])
-            final.append(occ.from_geom_surface(geom, name, reversed_=reversed_[name]))
+            final.append(occ.from_face(dict(face_names)[name], name, reversed_=reversed_[name]))
     final.sort(key=lambda s: FACE_NAMES.index(s.region))
     timings["sew"] = time.perf_counter() - start
 

@@ -21,14 +21,14 @@ from OCP.BRepClass3d import BRepClass3d_SolidClassifier
 from OCP.BRepGProp import BRepGProp
 from OCP.GProp import GProp_GProps
 from OCP.ShapeAnalysis import ShapeAnalysis_FreeBounds
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SHELL
+from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SHELL, TopAbs_WIRE
 from OCP.TopExp import TopExp_Explorer
 from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array2OfReal
 from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape
 from OCP.gp import gp_Pnt
 
-from bonecad.errors import KernelError
+from bonecad.errors import InputError, KernelError
 from bonecad.staging import staged_file
 
 log = logging.getLogger("bonecad")
@@ -45,6 +45,12 @@ def array1(values, cls):
     for k, v in enumerate(values, start=1):
         arr.SetValue(k, v)
     return arr
+
+
+def read_array1(values, dtype=np.float64) -> np.ndarray:
+    """A 1-based OpenCascade array (TColStd_Array1OfReal, ...OfInteger) as a numpy array (``list()`` on it
+    is ~50x slower)."""
+    return np.array([values.Value(i) for i in range(values.Lower(), values.Upper() + 1)], dtype=dtype)
 
 
 def pole_grid(points: np.ndarray) -> TColgp_Array2OfPnt:
@@ -80,8 +86,23 @@ def edges(shape: TopoDS_Shape) -> list:
     return _subshapes(shape, TopAbs_EDGE, TopoDS.Edge_s)
 
 
+def wires(shape: TopoDS_Shape) -> list:
+    return _subshapes(shape, TopAbs_WIRE, TopoDS.Wire_s)
+
+
 def faces(shape: TopoDS_Shape) -> list:
+    """The faces of ``shape`` in explorer order (orientation as seen in the shape)."""
     return _subshapes(shape, TopAbs_FACE, TopoDS.Face_s)
+
+
+def nonempty_faces(shape: TopoDS_Shape) -> list:
+    """:func:`faces`; InputError for a null shape or one without faces."""
+    if shape is None or shape.IsNull():
+        raise InputError("shape is null")
+    found = faces(shape)
+    if not found:
+        raise InputError("shape has no faces")
+    return found
 
 
 def sew(

@@ -1,7 +1,14 @@
-"""cadquery interop: bonecad shapes are build123d/OCP shapes, so cadquery wraps the same TopoDS objects."""
+"""build123d and cadquery interop: both wrap the same OCP TopoDS objects as bonecad's shapes."""
 from __future__ import annotations
 
 from bonecad.errors import BonecadError
+
+
+def to_build123d(shape):
+    """A build123d Solid wrapping the OCP TopoDS_Solid ``shape``, no copy."""
+    from build123d import Solid
+
+    return Solid(shape)
 
 
 def to_cadquery(shape):

@@ -18,8 +18,8 @@ from OCP.TopoDS import TopoDS_Face, TopoDS_Shape
 
 from bonecad.splines.curve import BSplineCurve
 from bonecad.errors import FitError, KernelError
-from bonecad.occ.brep import array1, edges, pole_grid
-from bonecad.splines.knots import full_sequence, multiplicities
+from bonecad.occ.brep import array1, edges, pole_grid, read_array1
+from bonecad.splines.knots import multiplicities
 from bonecad.splines.surface import BSplineSurface
 
 def _knots_and_mults(knots: np.ndarray, periodic: bool) -> tuple[list[float], list[int]]:
@@ -61,13 +61,17 @@ def from_geom_surface(geom: Geom_BSplineSurface, region: str, *, reversed_: bool
                        for b in range(1, nv + 1)] for a in range(1, nu + 1)])
 
     def full(knots, mults, count):
-        seq = full_sequence([knots.Value(i) for i in range(1, knots.Length() + 1)],
-                            [mults.Value(i) for i in range(1, mults.Length() + 1)])
+        seq = np.repeat(read_array1(knots), read_array1(mults, int))
         return (seq - seq[0]) / (seq[-1] - seq[0])
 
     return BSplineSurface(poles, full(geom.UKnots(), geom.UMultiplicities(), nu),
                           full(geom.VKnots(), geom.VMultiplicities(), nv), geom.UDegree(), geom.VDegree(),
                           region=region, reversed=reversed_)
+
+
+def from_face(face: TopoDS_Face, region: str, *, reversed_: bool = False) -> BSplineSurface:
+    """The numpy surface of a face lying on a non-periodic polynomial B-spline (:func:`from_geom_surface`)."""
+    return from_geom_surface(BRep_Tool.Surface_s(face), region, reversed_=reversed_)
 
 
 def make_face(surface: BSplineSurface, *, tolerance_mm: float = 1e-7) -> TopoDS_Face:

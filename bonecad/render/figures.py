@@ -32,7 +32,7 @@ from bonecad.errors import InputError
 from bonecad.staging import staged_file
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.analysis.deviation import sample_surface
-from bonecad.occ.tessellate import Tessellation
+from bonecad.mesh.tessellation import Tessellation
 
 View = Literal["anterior", "posterior"]
 VIEWS: tuple[View, ...] = ("anterior", "posterior")
