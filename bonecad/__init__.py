@@ -54,7 +54,7 @@ def anatomical_frame(bone: BoneMesh, settings: Settings | None = None) -> Anatom
     return _frame.anatomical_frame(bone, settings=s.anatomy, plausible=s.units)
 
 
-def phantom_tibia(params: TibiaParameters | None = None, settings: Settings | None = None) -> BoneMesh:
+def phantom_tibia(params: "TibiaParameters | None" = None, settings: Settings | None = None) -> BoneMesh:
     """The synthetic phantom tibia (see ``bonecad.imaging.phantom_tibia``)."""
     from bonecad.imaging import phantom_tibia as _phantom
 

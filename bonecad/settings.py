@@ -128,6 +128,11 @@ class AnalysisSettings:
     continuity_curvature_jump: float
     continuity_curvature_radius_ref_mm: float
 
+    def __post_init__(self) -> None:
+        width, limit = self.band_width_mm, self.band_limit_mm
+        if width <= 0 or limit <= 0 or abs(round(2 * limit / width) * width - 2 * limit) > 1e-9 * limit:
+            raise ValueError(f"band_limit_mm {limit} must be a whole number of band_width_mm {width} (both > 0)")
+
 
 @dataclass(frozen=True)
 class PipelineSettings:
@@ -208,7 +213,10 @@ def _build(cls: type, table: Mapping[str, Any], where: str, path: str | Path | N
         values[f.name] = (_build(hints[f.name], table[f.name], f"{name}.", path)
                           if dataclasses.is_dataclass(hints[f.name])
                           else _typed(table[f.name], hints[f.name], name, path))
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ValueError as exc:  # a section's own consistency check
+        raise InputError(f"settings '{where.rstrip('.')}': {exc}", path) from None
 
 
 def _typed(value: Any, hint: Any, name: str, path: str | Path | None) -> Any:

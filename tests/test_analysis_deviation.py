@@ -250,7 +250,7 @@ def test_statistics_and_histogram():
     assert s.rms_mm == pytest.approx(np.sqrt(np.sum(d * d * w) / w.sum()))
     # |d| sorted 0.05, 0.05, 0.15, 2, 3, 5 (weight 5): the CDF reaches 0.5 at 3
     np.testing.assert_array_equal(weighted_percentiles(np.abs(d), w, [10, 50, 50.1, 99.9]), [0.05, 3.0, 5.0, 5.0])
-    with pytest.raises(InputError, match="whole number"):
+    with pytest.raises(ValueError, match="whole number"):
         band_edges(0.3, 1.0)
 
 

@@ -9,7 +9,6 @@ import pytest
 
 from bonecad.splines.curve import BSplineCurve
 from bonecad.contours.curves import contour_curves
-from bonecad.errors import InputError
 from bonecad.export import export
 from bonecad.nurbs_model import FACE_NAMES, build_nurbs
 from bonecad.splines.surface import BSplineSurface
@@ -198,8 +197,9 @@ def test_left_tibia_gives_an_outward_solid(contours, phantom, ring_model):
     np.testing.assert_allclose(mirrored(0.3, 1.0 - 0.4), right(0.3, 0.4) @ mirror, atol=1e-9)
 
 
-def test_unknown_apex_fill_is_an_input_error(contours):
-    with pytest.raises(InputError, match="apex_fill must be one of"):
+def test_unknown_apex_fill_is_refused(contours):
+    """From a file or a flag it is bad input (exit 2, see test_settings); from code, a ValueError."""
+    with pytest.raises(ValueError, match="apex_fill must be one of"):
         build_nurbs(contours, settings=replace(SETTINGS.nurbs, apex_fill="plug"))
 
 
