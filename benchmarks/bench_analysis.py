@@ -8,8 +8,8 @@ Prints tessellation time, distance time for ``[analysis] sample_points`` points
 closed-form distance |p| - R. Also times a whole ``shape_deviation`` (both
 directions) and a continuity pass.
 
-Then ``analyse_model`` (tessellation, deviation both ways, continuity, three
-PNGs) on the phantom tibia's NURBS model (target < 5 s) and on a shell of its
+Then the analysis stage as ``reconstruct`` runs it, in one process (``analyse_shape``
+below: tessellation, deviation both ways, continuity, three PNGs) on the phantom tibia's NURBS model (target < 5 s) and on a shell of its
 Bezier patches, about 3.5k Geom_BezierSurface faces sewn like a T-spline model
 (target < 7 s): best of 3 wall-clock and process time, and the load average
 (the 2 cores are shared: a loaded machine stretches wall time).
@@ -20,35 +20,37 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import replace
 
 import numpy as np
 from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
 from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
-from bonecad.mesh.closest import TriangleLocator
 from bonecad.analysis.continuity import seam_continuity
 from bonecad.analysis.deviation import sample_surface, shape_deviation, signed_distance_to_shape
-from bonecad.mesh.tessellation import TessellationSettings
-from bonecad.occ.tessellate import tessellate
-from bonecad.config import load_config
+from bonecad.analysis.model import continuity_tolerances, tessellation_settings
 from bonecad.analysis.statistics import settings_band_edges
+from bonecad.mesh.closest import TriangleLocator
+from bonecad.occ.tessellate import tessellate
 from bonecad.settings import Settings
 
-#: the shipped [analysis] histogram bands (mm)
-BANDS_MM = settings_band_edges(Settings.load().analysis)
+#: the shipped settings; their [analysis] tessellation tolerances and histogram bands (mm)
+SETTINGS = Settings.load()
+TESSELLATION = tessellation_settings(SETTINGS.analysis)
+BANDS_MM = settings_band_edges(SETTINGS.analysis)
 
 RADIUS = 40.0
 
 
 def main() -> None:
-    count = int(load_config()["analysis"]["sample_points"])
+    count = SETTINGS.analysis.sample_points
     shape = BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeSphere(RADIUS).Shape(), True).Shape()
     t0 = time.perf_counter()
-    tess = tessellate(shape)
+    tess = tessellate(shape, TESSELLATION)
     t_tess = time.perf_counter() - t0
     print(f"tessellation: {len(tess.triangles)} triangles, {t_tess:.2f} s, chord error {tess.chord_error_mm.max():.4f} mm")
 
-    coarse = tessellate(shape, TessellationSettings.default(deflection_mm=0.1, max_edge_mm=2.0))
+    coarse = tessellate(shape, replace(TESSELLATION, deflection_mm=0.1, max_edge_mm=2.0))
     unit = coarse.vertices / RADIUS
     wave = 0.3 * np.sin(3 * np.arctan2(unit[:, 1], unit[:, 0])) * np.cos(2 * np.arcsin(np.clip(unit[:, 2], -1, 1)))
     mesh_v = coarse.vertices + unit * wave[:, None]
@@ -79,7 +81,7 @@ def main() -> None:
           f"max out {s.max_outside_mm:.4f}, max in {s.max_inside_mm:.4f}")
 
     t0 = time.perf_counter()
-    seam_continuity(BRepPrimAPI_MakeSphere(RADIUS).Shape())
+    seam_continuity(BRepPrimAPI_MakeSphere(RADIUS).Shape(), tolerances=continuity_tolerances(SETTINGS.analysis))
     print(f"seam continuity (sphere): {time.perf_counter() - t0:.3f} s")
 
 
@@ -104,27 +106,47 @@ def bezier_shell(shape):
     return sewing.SewedShape()
 
 
+def analyse_shape(name: str, shape, bone, frame, out_dir):
+    """The analysis stage of ``reconstruct`` (``bonecad.run.pipeline.analyse``) on a bare shape, all in
+    this process: tessellation, deviation both ways, the three PNGs, seam and knot continuity (no face
+    names). Returns the deviation with the tessellation's time among its steps."""
+    from bonecad.analysis.model import model_continuity, model_deviation, tessellate_model
+    from bonecad.render.figures import deviation_map_png, histogram_png, zebra_png
+
+    view_frame = frame.axes.T  # columns: lateral, anterior, proximal
+    t0 = time.perf_counter()
+    tess = tessellate_model(shape, SETTINGS.analysis)
+    t_tess = time.perf_counter() - t0
+    zebra_png(out_dir / f"{name}_zebra.png", tess, view_frame, title=f"{name}: zebra (reflection lines)")
+    model_continuity(shape, tess, None, SETTINGS.analysis)
+    deviation = model_deviation(tess, bone, frame, SETTINGS.analysis)
+    deviation_map_png(out_dir / f"{name}_deviation.png", bone.vertices, bone.faces, deviation.vertex_deviation_mm,
+                      view_frame, title=f"{name}: deviation of the mesh from the CAD model, mm")
+    histogram_png(out_dir / f"{name}_histogram.png",
+                  {"whole bone": deviation.mesh_to_cad.histogram, **deviation.mesh_to_cad.region_histograms},
+                  title=f"{name}: share of surface per deviation band")
+    return replace(deviation, timings_s={"tessellate": t_tess, **deviation.timings_s})
+
+
 def bench_models() -> None:
     import tempfile
     from pathlib import Path
 
     import bonecad
-    from bonecad.analysis.model import analyse_model
-    from bonecad.occ.brep import faces
     from bonecad.contours.curves import contour_curves
     from bonecad.nurbs_model.model import build_nurbs
+    from bonecad.occ.brep import faces
 
-    bone = bonecad.phantom_tibia()
-    frame = bonecad.anatomical_frame(bone)
-    nurbs = build_nurbs(contour_curves(bone, frame)).shape
+    bone = bonecad.phantom_tibia(settings=SETTINGS)
+    frame = bonecad.anatomical_frame(bone, SETTINGS)
+    nurbs = build_nurbs(contour_curves(bone, frame, settings=SETTINGS.curves), settings=SETTINGS.nurbs).shape
     out = Path(tempfile.mkdtemp())
     for name, shape, target in (("nurbs", nurbs, 5.0), ("bezier", bezier_shell(nurbs), 7.0)):
         wall, cpu = np.inf, np.inf
         for _ in range(3):
             t0, c0 = time.perf_counter(), time.process_time()
-            report = analyse_model(name, shape, bone, frame, out, info={})
+            dev = analyse_shape(name, shape, bone, frame, out)
             wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
-        dev = report.deviation
         print(f"analyse_model {name}: {len(faces(shape))} faces, mesh {len(bone.faces)} triangles: "
               f"{wall:.2f} s wall, {cpu:.2f} s process (best of 3; target < {target:g} s; "
               f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores)")

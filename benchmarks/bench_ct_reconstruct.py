@@ -9,24 +9,28 @@ from pathlib import Path
 
 import bonecad
 from bonecad.analysis.deviation import shape_deviation
-from bonecad.analysis.model import region_labels
+from bonecad.analysis.model import region_labels, tessellation_settings
+from bonecad.analysis.statistics import settings_band_edges
 from bonecad.contours.curves import contour_curves
 from bonecad.imaging import mesh_to_ct, segment_bone
 from bonecad.nurbs_model.model import build_nurbs
-from bonecad.analysis.statistics import settings_band_edges
-from bonecad.settings import Settings
 from bonecad.occ.tessellate import tessellate
+from bonecad.settings import Settings
 
-#: the shipped [analysis] histogram bands (mm)
-BANDS_MM = settings_band_edges(Settings.load().analysis)
+#: the shipped settings; their [analysis] tessellation tolerances and histogram bands (mm)
+SETTINGS = Settings.load()
+TESSELLATION = tessellation_settings(SETTINGS.analysis)
+BANDS_MM = settings_band_edges(SETTINGS.analysis)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 
 
 def figures(model_bone, reference, reference_frame):
-    frame = bonecad.anatomical_frame(model_bone)
-    shape = build_nurbs(contour_curves(model_bone, frame)).shape
-    stats = shape_deviation(reference.vertices, reference.faces, tessellate(shape, TESSELLATION), regions=region_labels(reference_frame), edges_mm=BANDS_MM, sample_points=100_000).mesh_to_cad.stats
+    frame = bonecad.anatomical_frame(model_bone, SETTINGS)
+    shape = build_nurbs(contour_curves(model_bone, frame, settings=SETTINGS.curves), settings=SETTINGS.nurbs).shape
+    stats = shape_deviation(reference.vertices, reference.faces, tessellate(shape, TESSELLATION),
+                            regions=region_labels(reference_frame), edges_mm=BANDS_MM,
+                            sample_points=100_000).mesh_to_cad.stats
     return {"rms": stats.rms_mm, "p99": float(stats.abs_percentiles_mm[3]),
             "max": max(stats.max_outside_mm, stats.max_inside_mm)}
 
@@ -38,8 +42,8 @@ def main() -> None:
         path = DATA / name
         if not path.exists():
             sys.exit(f"benchmark needs {path}")
-        bone = bonecad.load_bone(path)
-        frame = bonecad.anatomical_frame(bone)
+        bone = bonecad.load_bone(path, settings=SETTINGS)
+        frame = bonecad.anatomical_frame(bone, SETTINGS)
         from_mesh = figures(bone, bone, frame)
         start = time.perf_counter()
         segmented = segment_bone(mesh_to_ct(bone.vertices, bone.faces, voxel_mm=0.5, noise_hu=30.0))

@@ -8,6 +8,9 @@ from pathlib import Path
 
 import bonecad
 from bonecad.contours.curves import contour_curves
+from bonecad.settings import Settings
+
+SETTINGS = Settings.load()  # the shipped settings
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 
@@ -18,12 +21,12 @@ def main() -> None:
         sys.exit(f"benchmark needs the real meshes in {DATA}")
     print(f"{'mesh':<28} {'time s':>7}  region    curves  worst mm  tol mm  within")
     for path in meshes:
-        bone = bonecad.load_bone(path)
-        frame = bonecad.anatomical_frame(bone)
+        bone = bonecad.load_bone(path, settings=SETTINGS)
+        frame = bonecad.anatomical_frame(bone, SETTINGS)
         best = float("inf")
         for _ in range(2 if path.name.startswith("TLEM2") else 1):
             start = time.perf_counter()
-            contours = contour_curves(bone, frame)
+            contours = contour_curves(bone, frame, settings=SETTINGS.curves)
             best = min(best, time.perf_counter() - start)
         for i, (region, s) in enumerate(contours.summary().items()):
             head = f"{path.stem:<28} {best:>7.2f}" if i == 0 else " " * 36

@@ -15,18 +15,23 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 import bonecad
-from bonecad.analysis import TessellationSettings, shape_deviation
+from bonecad.analysis import shape_deviation
+from bonecad.analysis.model import tessellation_settings
+from bonecad.analysis.statistics import settings_band_edges
 from bonecad.contours.curves import contour_curves
 from bonecad.nurbs_model import build_nurbs
 from bonecad.occ.tessellate import tessellate
+from bonecad.settings import Settings
 
 DATA = Path(os.environ.get("BONECAD_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "tibia"
 BANDS_MM = (0.1, 0.25, 0.5, 1.0)
+SETTINGS = Settings.load()  # the shipped settings
 
 
 def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -45,25 +50,27 @@ def main() -> None:
     meshes = sorted(DATA.glob("*.stl"))
     if not meshes:
         raise SystemExit(f"no real meshes in {DATA}")
-    settings = TessellationSettings.default(deflection_mm=0.05, max_edge_mm=1.5)
+    settings = replace(tessellation_settings(SETTINGS.analysis), deflection_mm=0.05, max_edge_mm=1.5)
+    histogram_edges = settings_band_edges(SETTINGS.analysis)  # the histograms (not printed) use the shipped bands
     header = (f"{'mesh':<24s} {'fill':<5s} {'tri':>7s} {'faces':>5s} {'poles':>6s} {'dV %':>7s} {'refit':>6s} "
               + " ".join(f"<{b:g}mm" for b in BANDS_MM) + "   max mm  (mesh->CAD | CAD->mesh)")
     lines = []
     for path in meshes:
-        bone = bonecad.load_bone(path)
-        frame = bonecad.anatomical_frame(bone)
-        contours = contour_curves(bone, frame)
+        bone = bonecad.load_bone(path, settings=SETTINGS)
+        frame = bonecad.anatomical_frame(bone, SETTINGS)
+        contours = contour_curves(bone, frame, settings=SETTINGS.curves)
         if path.stem.startswith("TLEM2"):
             best = np.inf
             for _ in range(3):
                 t0 = time.perf_counter()
-                build_nurbs(contours, apex_fill="ring")
+                build_nurbs(contours, settings=replace(SETTINGS.nurbs, apex_fill="ring"))
                 best = min(best, time.perf_counter() - t0)
             print(f"NURBS stage on {path.name} ({len(bone.faces)} triangles): {best:.2f} s (target < 5 s, best of 3)")
         vol = mesh_volume(bone.vertices, bone.faces)
         for fill in ("ring", "patch"):
-            model = build_nurbs(contours, apex_fill=fill)
-            result = shape_deviation(bone.vertices, bone.faces, tessellate(model.shape, settings), edges_mm=BANDS_MM, sample_points=args.samples)
+            model = build_nurbs(contours, settings=replace(SETTINGS.nurbs, apex_fill=fill))
+            result = shape_deviation(bone.vertices, bone.faces, tessellate(model.shape, settings),
+                                     edges_mm=histogram_edges, sample_points=args.samples)
             fwd, fwd_max = bands(result.mesh_to_cad)
             back, back_max = bands(result.cad_to_mesh)
             refit = max(r.max_deviation_mm for r in model.refits)

@@ -13,40 +13,48 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 import bonecad
-from bonecad.analysis import TessellationSettings, shape_deviation
+from bonecad.analysis import shape_deviation
+from bonecad.analysis.model import tessellation_settings
+from bonecad.analysis.statistics import settings_band_edges
 from bonecad.contours.curves import contour_curves
 from bonecad.errors import KernelError
-from bonecad.tspline_model import build_tspline_model
-from bonecad.analysis.statistics import settings_band_edges
-from bonecad.settings import Settings
 from bonecad.occ.tessellate import tessellate
+from bonecad.settings import Settings
+from bonecad.tspline_model import build_tspline_model
 
-#: the shipped [analysis] histogram bands (mm)
-BANDS_MM = settings_band_edges(Settings.load().analysis)
+#: the shipped settings; the [analysis] tessellation with 1 % coverage tolerance, and histogram bands (mm)
+SETTINGS = Settings.load()
+TESSELLATION = replace(tessellation_settings(SETTINGS.analysis), coverage_tolerance=0.01)
+BANDS_MM = settings_band_edges(SETTINGS.analysis)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
 
 
 def main(paths: list[Path]) -> None:
     for path in paths:
-        bone = bonecad.load_bone(path)
-        frame = bonecad.anatomical_frame(bone)
-        contours = contour_curves(bone, frame)
+        bone = bonecad.load_bone(path, settings=SETTINGS)
+        frame = bonecad.anatomical_frame(bone, SETTINGS)
+        contours = contour_curves(bone, frame, settings=SETTINGS.curves)
+        apex_hole = SETTINGS.curves.apex_hole_radius_mm
         t0 = time.perf_counter()
-        model = build_tspline_model(bone, frame, contours, compare_tensor_product=False)
+        model = build_tspline_model(bone, frame, contours, apex_hole_radius_mm=apex_hole,
+                                    settings=replace(SETTINGS.tspline, compare_tensor_product=False))
         stage = time.perf_counter() - t0
         # the comparison surface is timed apart: it is not part of the model
         t1 = time.perf_counter()
-        compared = build_tspline_model(bone, frame, contours, compare_tensor_product=True)
+        compared = build_tspline_model(bone, frame, contours, apex_hole_radius_mm=apex_hole,
+                                       settings=replace(SETTINGS.tspline, compare_tensor_product=True))
         tp_time = compared.timings_s.get("tensor_product", float("nan"))
         t_all = time.perf_counter() - t1
         try:
-            dev = shape_deviation(bone.vertices, bone.faces, tessellate(model.shape, TessellationSettings(coverage_tolerance=0.01)), edges_mm=BANDS_MM, sample_points=100_000)
+            dev = shape_deviation(bone.vertices, bone.faces, tessellate(model.shape, TESSELLATION), edges_mm=BANDS_MM,
+                                  sample_points=100_000)
         except KernelError as exc:  # the analysis refuses faces its tessellation covers badly
             dev, dev_error = None, str(exc)
         fs = model.fit.stats
