@@ -246,7 +246,7 @@ def _start_real_run(tmp_path: Path, out: Path) -> Run:
     return Run(cli("reconstruct", REAL_TIBIA, "--out", out), tmp_path)
 
 
-def _signal_at_model_stage(run: Run, out: Path, how: str) -> float:
+def _signal_at_model_stage(run: Run, how: str) -> float:
     """Wait until the run builds its models (children at work), then signal it; the monotonic time sent."""
     if not run.wait_for_line(MODEL_STAGE, STAGE_DEADLINE_S):
         pytest.fail(f"the run never reached {MODEL_STAGE!r} (exit {run.proc.poll()}): {run.stderr()[-800:]!r}")
@@ -268,7 +268,7 @@ def test_signal_stops_every_process_and_removes_staging(tmp_path, how):
     out = tmp_path / "signalled_out"
     run = _start_real_run(tmp_path, out)
     try:
-        sent = _signal_at_model_stage(run, out, how)
+        sent = _signal_at_model_stage(run, how)
         code = run.wait(max(0.1, sent + REAP_S - time.monotonic()))
         left = wait_gone(out, sent + REAP_S)
         problems = []
@@ -302,7 +302,7 @@ def test_sigkill_leaves_no_process_and_the_next_run_removes_the_staging_folder(t
     rerun = None
     problems = []
     try:
-        sent = _signal_at_model_stage(run, out, "SIGKILL")
+        sent = _signal_at_model_stage(run, "SIGKILL")
         code = run.wait(REAP_S)
         left = wait_gone(out, sent + REAP_S)
         if code != -signal.SIGKILL:
