@@ -39,3 +39,14 @@ def phantom_frame(phantom):
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="session")
+def fused_tibia_fibula(tmp_path_factory):
+    """TLEM2's tibia and fibula voxelised at 1 mm into one body (tests/fused.py): (STL path, FusedMesh)."""
+    from .fused import SOURCE, build_fused, write_fused
+
+    if not SOURCE.is_file():
+        pytest.skip(f"{SOURCE} is absent (the fused tibia-fibula mesh is built from it)")
+    fused = build_fused(SOURCE)
+    return write_fused(tmp_path_factory.mktemp("fused") / "TLEM2_fused_1mm.stl", fused), fused
