@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from bonecad._version import __version__
 from bonecad.anatomy import frame as _frame
@@ -21,6 +22,9 @@ from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units
 from bonecad.run.pipeline import Reconstruction, reconstruct
 from bonecad.settings import Settings
+
+if TYPE_CHECKING:
+    from bonecad.imaging.phantom_tibia import TibiaParameters
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
@@ -54,7 +58,7 @@ def anatomical_frame(bone: BoneMesh, settings: Settings | None = None) -> Anatom
     return _frame.anatomical_frame(bone, settings=s.anatomy, plausible=s.units)
 
 
-def phantom_tibia(params: "TibiaParameters | None" = None, settings: Settings | None = None) -> BoneMesh:
+def phantom_tibia(params: TibiaParameters | None = None, settings: Settings | None = None) -> BoneMesh:
     """The synthetic phantom tibia (see ``bonecad.imaging.phantom_tibia``)."""
     from bonecad.imaging import phantom_tibia as _phantom
 

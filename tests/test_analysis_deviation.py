@@ -8,7 +8,7 @@ from bonecad.mesh.closest import TriangleLocator
 from bonecad.analysis.deviation import sample_shape, sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.analysis.statistics import band_edges, deviation_stats, histogram, weighted_percentiles
 from bonecad.occ.tessellate import tessellate
-from bonecad.errors import InputError, KernelError
+from bonecad.errors import KernelError
 from tests.defaults import BANDS_MM, SETTINGS, TESSELLATION
 from dataclasses import replace
 
@@ -195,7 +195,7 @@ def test_regions_partition_the_histogram(sphere, sphere_fine):
 
 
 def test_bad_region_labels_are_refused(sphere, sphere_fine):
-    with pytest.raises(InputError, match="unknown region labels"):
+    with pytest.raises(ValueError, match="unknown region labels"):
         shape_deviation(sphere_fine.vertices, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM, sample_points=100, regions=lambda p: np.full(len(p), "femur"))
 
 

@@ -14,7 +14,7 @@ from bonecad.analysis.deviation import shape_deviation
 from tests.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, compare_histogram
 from bonecad.render.figures import deviation_map_png, histogram_png
 from bonecad.analysis.model import ModelReport
-from bonecad.export import export
+from bonecad.export.registry import export
 from bonecad.export.report import SCHEMA, ReportDocument
 from bonecad.analysis.statistics import Histogram
 from bonecad.occ.brepmesh import brepmesh_face

@@ -12,7 +12,7 @@ import trimesh
 from bonecad.run.cli import main
 from bonecad.occ.exchange import read_step
 
-from .conftest import REAL_MESHES, real_mesh_params
+from .conftest import real_mesh_params
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,6 @@ import json
 
 import numpy as np
 import pytest
-import trimesh
 
 import bonecad
 from bonecad.run.cli import main

@@ -9,7 +9,7 @@ import pytest
 
 from bonecad.splines.curve import BSplineCurve
 from bonecad.contours.curves import contour_curves
-from bonecad.export import export
+from bonecad.export.registry import export
 from bonecad.nurbs_model import FACE_NAMES, build_nurbs
 from bonecad.splines.surface import BSplineSurface
 from bonecad.occ import brep

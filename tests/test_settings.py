@@ -94,7 +94,7 @@ def test_mesh_section_reaches_the_intake(phantom, tmp_path, capsys):
 
 def test_anatomy_section_reaches_the_frame(phantom_stl, tmp_path, capsys):
     def boundaries(out):
-        return json.loads((out / "frame.json").read_text())["region_boundaries_mm"]
+        return json.loads((out / "frame.json").read_text())["regions_mm_above_origin"]
 
     assert _run(["frame", phantom_stl, "--out", tmp_path / "a"], capsys)[0] == 0
     config = _config(tmp_path, "[anatomy]\ndistal_flare_ratio = 1.3\nproximal_boundary_mm = 250.0\n")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bonecad.splines.tspline import check_suitability
-from bonecad.export import export
+from bonecad.export.registry import export
 from bonecad.tspline_model import build_tspline_model
 from tests.defaults import SETTINGS, TESSELLATION, BANDS_MM
 from dataclasses import replace

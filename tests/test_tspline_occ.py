@@ -6,7 +6,6 @@ import pytest
 
 occ = pytest.importorskip("bonecad.occ.tspline")
 
-from bonecad.errors import InputError  # noqa: E402
 from bonecad.occ.brep import is_valid, sew  # noqa: E402
 from bonecad.splines.tspline import TSpline  # noqa: E402
 from tests.test_tspline_core import size, t_tube, tube  # noqa: E402
@@ -41,7 +40,7 @@ def test_open_tensor_product_equals_occ_bspline_surface():
 
 
 def test_t_junctions_have_no_single_bspline_surface():
-    with pytest.raises(InputError, match="not a tensor product"):
+    with pytest.raises(ValueError, match="not a tensor product"):
         occ.bspline_surface(t_tube(0))
 
 

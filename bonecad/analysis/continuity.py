@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bonecad.errors import InputError
 from bonecad.occ.brep import faces, names_in_order
 from bonecad.occ.seams import FaceKnots, SeamSamples, face_knots, sample_seams
 
@@ -79,7 +78,7 @@ class SeamContinuity:
     def pair_names(self) -> list[str]:
         """'a|b' (sorted) for every edge: the names of its two faces."""
         if self.face_names is None:
-            raise InputError("the faces of this shape have no names")
+            raise ValueError("the faces of this shape have no names")
         return ["|".join(sorted((self.face_names[a], self.face_names[b]))) for a, b in self.faces]
 
     def summary(self) -> dict:

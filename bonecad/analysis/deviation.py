@@ -37,7 +37,6 @@ from typing import Callable, Union
 
 import numpy as np
 
-from bonecad.errors import InputError
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.closest import TriangleLocator, vertex_normals
 from bonecad.splines.project import project_faces
@@ -69,14 +68,14 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, *, seed:
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     if count <= 0:
-        raise InputError(f"sample count must be > 0, got {count}")
+        raise ValueError(f"sample count must be > 0, got {count}")
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise InputError(f"need vertices (n, 3) and faces (m, 3), got {vertices.shape}, {faces.shape}")
+        raise ValueError(f"need vertices (n, 3) and faces (m, 3), got {vertices.shape}, {faces.shape}")
     tri = vertices[faces]
     areas = triangle_areas(vertices, faces)
     total = areas.sum()
     if not total > 0:
-        raise InputError("mesh has zero area")
+        raise ValueError("mesh has zero area")
     rng = np.random.default_rng(seed)
     cdf = np.cumsum(areas) / total
     chosen = np.minimum(np.searchsorted(cdf, rng.random(count), side="right"), len(faces) - 1)
@@ -302,10 +301,10 @@ def _labels(points: np.ndarray, regions: RegionSpec) -> np.ndarray:
         return np.full(len(points), "", dtype=object)
     labels = np.asarray(regions(points), dtype=object)
     if labels.shape != (len(points),):
-        raise InputError(f"region function returned shape {labels.shape}, expected ({len(points)},)")
+        raise ValueError(f"region function returned shape {labels.shape}, expected ({len(points)},)")
     unknown = set(labels.tolist()) - set(REGIONS)
     if unknown:
-        raise InputError(f"unknown region labels {sorted(unknown)}; expected {REGIONS}")
+        raise ValueError(f"unknown region labels {sorted(unknown)}; expected {REGIONS}")
     return labels
 
 

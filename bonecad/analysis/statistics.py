@@ -12,7 +12,6 @@ from typing import Any
 
 import numpy as np
 
-from bonecad.errors import InputError
 from bonecad.settings import AnalysisSettings
 
 #: percentiles of |deviation| reported by :class:`DeviationStats`
@@ -79,7 +78,7 @@ class Histogram:
         edges = np.asarray(data["edges_mm"], dtype=np.float64)
         shares = np.asarray(data["shares"], dtype=np.float64)
         if shares.shape != (len(edges) + 1,):
-            raise InputError(
+            raise ValueError(
                 f"histogram has {len(edges)} edges and {len(shares)} shares; expected "
                 f"{len(edges) + 1} shares (bands plus under- and overflow)"
             )
@@ -108,9 +107,9 @@ def histogram(deviation_mm: np.ndarray, weights: np.ndarray | None, edges_mm: np
     w = np.ones_like(d) if weights is None else np.asarray(weights, dtype=np.float64)
     edges = np.asarray(edges_mm, dtype=np.float64)
     if d.shape != w.shape:
-        raise InputError(f"deviation {d.shape} and weights {w.shape} differ in shape")
+        raise ValueError(f"deviation {d.shape} and weights {w.shape} differ in shape")
     if len(d) == 0 or w.sum() <= 0:
-        raise InputError("histogram of no samples (or zero total weight)")
+        raise ValueError("histogram of no samples (or zero total weight)")
     index = np.searchsorted(edges, d, side="right")  # 0 = underflow, len(edges) = overflow
     shares = np.bincount(index, weights=w, minlength=len(edges) + 1) / w.sum()
     return Histogram(edges, shares)
@@ -138,9 +137,9 @@ def deviation_stats(deviation_mm: np.ndarray, weights: np.ndarray | None = None)
     d = np.asarray(deviation_mm, dtype=np.float64)
     w = np.ones_like(d) if weights is None else np.asarray(weights, dtype=np.float64)
     if d.shape != w.shape or d.ndim != 1:
-        raise InputError(f"deviation {d.shape} and weights {w.shape} must be equal 1-d shapes")
+        raise ValueError(f"deviation {d.shape} and weights {w.shape} must be equal 1-d shapes")
     if len(d) == 0 or w.sum() <= 0:
-        raise InputError("statistics of no samples (or zero total weight)")
+        raise ValueError("statistics of no samples (or zero total weight)")
     total = w.sum()
     return DeviationStats(
         rms_mm=float(np.sqrt(np.sum(w * d * d) / total)),

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bonecad.contours.curves import ContourSet
-from bonecad.export import exporter
+from bonecad.export.registry import exporter
 from bonecad.export.documents import FrameDocument
 from bonecad.nurbs_model.model import NurbsModel
 from bonecad.occ import brep

@@ -13,7 +13,7 @@ import numpy as np
 
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.contours.curves import ContourSet
-from bonecad.export import exporter
+from bonecad.export.registry import exporter
 from bonecad.splines.tspline import to_dict
 from bonecad.staging import staged_file
 from bonecad.tspline_model.model import TSplineModel, to_scanner

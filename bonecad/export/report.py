@@ -35,17 +35,15 @@ from __future__ import annotations
 import base64
 import html
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bonecad.errors import InputError
-from bonecad.export import exporter
+from bonecad.export.registry import exporter
 from bonecad.staging import staged_file
-from bonecad.analysis.continuity import CLASSES, KnotContinuity, SeamContinuity
-from bonecad.analysis.deviation import DeviationResult
+from bonecad.analysis.continuity import CLASSES, SeamContinuity
 from bonecad.analysis.model import ModelReport
 
 SCHEMA = "bonecad.report/1"

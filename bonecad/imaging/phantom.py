@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from bonecad.errors import InputError
 from bonecad.imaging.volume import CTVolume
 from bonecad.imaging.voxelize import occupancy
 
@@ -50,9 +49,9 @@ def mesh_to_ct(
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
-        raise InputError(f"expected (n, 3) vertices and (m, 3) faces, got {vertices.shape} and {faces.shape}")
+        raise ValueError(f"expected (n, 3) vertices and (m, 3) faces, got {vertices.shape} and {faces.shape}")
     if voxel_mm <= 0 or blur_mm < 0 or noise_hu < 0 or cortex_mm <= 0:
-        raise InputError("voxel_mm and cortex_mm must be positive, blur_mm and noise_hu non-negative")
+        raise ValueError("voxel_mm and cortex_mm must be positive, blur_mm and noise_hu non-negative")
     faces = _outward(vertices, faces)
     low = vertices.min(axis=0) - margin_mm
     high = vertices.max(axis=0) + margin_mm
@@ -95,7 +94,7 @@ def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     tri = vertices[faces]
     signed = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
     if signed == 0:
-        raise InputError("the mesh encloses no volume")
+        raise ValueError("the mesh encloses no volume")
     return faces if signed > 0 else faces[:, ::-1]
 
 
@@ -125,7 +124,7 @@ def _interpolate_missing(hu: np.ndarray, missing: tuple[int, ...]) -> None:
     """Replace slices ``missing`` of ``hu`` in place by linear interpolation between the nearest present ones."""
     count = hu.shape[0]
     if missing[0] <= 0 or missing[-1] >= count - 1:
-        raise InputError(f"missing slices must be interior (1 to {count - 2}), got {missing}")
+        raise ValueError(f"missing slices must be interior (1 to {count - 2}), got {missing}")
     present = np.setdiff1d(np.arange(count), missing)
     for k in missing:
         upper = present[np.searchsorted(present, k)]

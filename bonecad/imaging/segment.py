@@ -19,7 +19,7 @@ from bonecad.errors import InputError
 from bonecad.imaging.volume import CTVolume
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
 
 # Voxels above this are bone for the automatic level's cortical estimate; the
 # surface level is clamped to [_LEVEL_MIN, _LEVEL_MAX] HU.

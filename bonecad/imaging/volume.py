@@ -26,7 +26,7 @@ import numpy as np
 from bonecad.errors import InputError
 from bonecad.staging import staged_file, staged_output
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
 
 # NIfTI world (RAS) <-> DICOM/ITK world (LPS): negate x and y.
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -110,11 +109,11 @@ class TriangleLocator:
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         self.triangles = np.ascontiguousarray(triangles, dtype=np.int64)
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
-            raise InputError(f"vertices must be (n, 3), got {self.vertices.shape}")
+            raise ValueError(f"vertices must be (n, 3), got {self.vertices.shape}")
         if self.triangles.ndim != 2 or self.triangles.shape[1] != 3 or len(self.triangles) == 0:
-            raise InputError(f"triangles must be (m, 3) with m > 0, got {self.triangles.shape}")
+            raise ValueError(f"triangles must be (m, 3) with m > 0, got {self.triangles.shape}")
         if self.triangles.min() < 0 or self.triangles.max() >= len(self.vertices):
-            raise InputError("triangles index vertices out of range")
+            raise ValueError("triangles index vertices out of range")
         self._tree = igl.AABB()
         self._tree.init(self.vertices, self.triangles)
 
@@ -122,7 +121,7 @@ class TriangleLocator:
         """Closest points of ``points`` (N, 3) on the mesh: the exact nearest point of every one."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
-            raise InputError(f"points must be (N, 3), got {points.shape}")
+            raise ValueError(f"points must be (N, 3), got {points.shape}")
         if len(points) == 0:
             return ClosestPoints(np.empty((0, 3)), np.empty(0, dtype=np.int64), np.empty((0, 3)), np.empty(0))
         _, triangle, _ = self._tree.squared_distance(self.vertices, self.triangles, points)

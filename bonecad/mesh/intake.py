@@ -17,7 +17,7 @@ from bonecad.errors import InputError
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 from bonecad.settings import MeshSettings, UnitsSettings
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
 
 Units = Literal["auto", "mm", "cm", "m"]
 UNIT_SCALE_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -21,7 +20,7 @@ from bonecad.occ.pickling import ShapePickling
 from bonecad.occ import surfaces as occ
 from bonecad.occ.interop import to_build123d
 from bonecad.nurbs_model.loft import BoneSurfaces, RefitReport, bone_surfaces, ring_cap
-from bonecad.settings import ApexFill, NurbsSettings
+from bonecad.settings import NurbsSettings
 from bonecad.splines.surface import BSplineSurface
 
 APEX_FILLS: tuple[str, ...] = ("ring", "patch")

@@ -28,10 +28,10 @@ from OCP.TColStd import TColStd_Array2OfReal
 from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape
 from OCP.gp import gp_Pnt
 
-from bonecad.errors import InputError, KernelError
+from bonecad.errors import KernelError
 from bonecad.staging import staged_file
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
 
 #: Relative error of the adaptive volume and area integration.
 VOLUME_EPS = 1e-6
@@ -96,12 +96,12 @@ def faces(shape: TopoDS_Shape) -> list:
 
 
 def nonempty_faces(shape: TopoDS_Shape) -> list:
-    """:func:`faces`; InputError for a null shape or one without faces."""
+    """:func:`faces`; ValueError for a null shape or one without faces."""
     if shape is None or shape.IsNull():
-        raise InputError("shape is null")
+        raise ValueError("shape is null")
     found = faces(shape)
     if not found:
-        raise InputError("shape has no faces")
+        raise ValueError("shape has no faces")
     return found
 
 

@@ -24,7 +24,6 @@ from OCP.TopoDS import TopoDS
 from OCP.TopTools import TopTools_IndexedMapOfShape
 from OCP.gp import gp_Pnt2d, gp_Vec2d
 
-from bonecad.errors import InputError
 from bonecad.occ.brep import edges, face_is_reversed, nonempty_faces, read_array1
 from bonecad.occ.read_faces import face_spline_surface
 from bonecad.splines.evaluate import SurfaceSet
@@ -79,7 +78,7 @@ def sample_seams(shape, *, samples: int, tessellation=None) -> SeamSamples:
     ``shape``, lends its surfaces (else they are read from the faces).
     """
     if samples < 2:
-        raise InputError(f"samples must be >= 2, got {samples}")
+        raise ValueError(f"samples must be >= 2, got {samples}")
     faces = nonempty_faces(shape)
     seams = _shared_edges(shape, faces)
     if not seams:
@@ -189,7 +188,7 @@ def _face_surfaces(faces: list, tessellation) -> tuple[SurfaceSet, np.ndarray]:
     """
     if tessellation is not None:
         if tessellation.face_count != len(faces):
-            raise InputError(
+            raise ValueError(
                 f"tessellation has {tessellation.face_count} faces, the shape {len(faces)}: not its tessellation"
             )
         sset = tessellation.surface_set

@@ -1,7 +1,7 @@
 """Fine tessellation of an OpenCascade shape, read into numpy and checked against the exact face areas.
 
 Untrimmed spline faces (:func:`~bonecad.occ.read_faces.is_natural`) are
-gridded in parameters, all in one batch (:mod:`bonecad.splines.grid_tessellation`);
+gridded in parameters, all in one batch (:mod:`bonecad.mesh.grid_tessellation`);
 other faces are meshed by BRepMesh face by face (:mod:`bonecad.occ.brepmesh`).
 Every node gets its exact surface normal; a face covered short of its exact area
 raises :class:`~bonecad.errors.KernelError`.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.errors import InputError, KernelError
+from bonecad.errors import KernelError
 from bonecad.mesh.closest import vertex_normals
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.tessellation import Tessellation, TessellationSettings
@@ -21,7 +21,7 @@ from bonecad.occ.brep import face_is_reversed, nonempty_faces
 from bonecad.occ.brepmesh import brepmesh_face
 from bonecad.occ.read_faces import face_spline_surface, is_natural
 from bonecad.splines.evaluate import SplineSurface, SurfaceSet
-from bonecad.splines.grid_tessellation import grid_tessellation
+from bonecad.mesh.grid_tessellation import grid_tessellation
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,7 @@ def tessellate(shape, settings: TessellationSettings) -> Tessellation:
     exact area by more than ``settings.allowed_shortfall``.
     """
     if settings.deflection_mm <= 0 or settings.max_edge_mm <= 0 or settings.angular_deflection_rad <= 0:
-        raise InputError(
+        raise ValueError(
             f"deflection_mm, max_edge_mm and angular_deflection_rad must be > 0, got {settings.deflection_mm}, "
             f"{settings.max_edge_mm}, {settings.angular_deflection_rad}"
         )

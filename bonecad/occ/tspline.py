@@ -20,7 +20,7 @@ from OCP.Geom import Geom_BezierSurface, Geom_BSplineSurface
 from OCP.TColStd import TColStd_Array1OfInteger, TColStd_Array1OfReal
 from OCP.TopoDS import TopoDS_Face, TopoDS_Shape
 
-from bonecad.errors import InputError, KernelError
+from bonecad.errors import KernelError
 from bonecad.occ.brep import array1, pole_grid, real_grid, sew
 from bonecad.splines.tspline.tspline import TSpline
 
@@ -62,11 +62,11 @@ def to_shell(ts: TSpline, *, tolerance_mm: float = 1e-6) -> TopoDS_Shape:
 def bspline_surface(ts: TSpline) -> Geom_BSplineSurface:
     """A tensor-product T-spline as one Geom_BSplineSurface (u = s, v = t).
 
-    Raises InputError when the T-mesh has T-junctions (not a tensor product).
+    Raises ValueError when the T-mesh has T-junctions (not a tensor product).
     """
     mesh = ts.mesh
     if not (mesh.s_edges.all() and mesh.t_edges.all()):
-        raise InputError("bspline_surface: the T-mesh is not a tensor product (it has T-junctions)")
+        raise ValueError("bspline_surface: the T-mesh is not a tensor product (it has T-junctions)")
     s_n, t_n = mesh.shape
     m_s = s_n if mesh.periodic else s_n - 4
     m_t = t_n - 4

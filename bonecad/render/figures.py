@@ -28,7 +28,6 @@ from typing import Literal
 import numpy as np
 from matplotlib.figure import Figure
 
-from bonecad.errors import InputError
 from bonecad.staging import staged_file
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.analysis.deviation import sample_surface
@@ -59,9 +58,9 @@ def check_frame(frame: np.ndarray) -> np.ndarray:
     """The frame as a (3, 3) float array; raise unless it is a rotation (right- or left-handed)."""
     f = np.asarray(frame, dtype=np.float64)
     if f.shape != (3, 3):
-        raise InputError(f"frame must be a (3, 3) matrix of axis columns, got shape {f.shape}")
+        raise ValueError(f"frame must be a (3, 3) matrix of axis columns, got shape {f.shape}")
     if not np.allclose(f.T @ f, np.eye(3), atol=1e-6):
-        raise InputError("frame columns must be orthonormal (lateral, anterior, proximal unit axes)")
+        raise ValueError("frame columns must be orthonormal (lateral, anterior, proximal unit axes)")
     return f
 
 
@@ -74,7 +73,7 @@ def screen_axes(frame: np.ndarray, view: View) -> np.ndarray:
     elif view == "posterior":
         toward = -anterior
     else:
-        raise InputError(f"view must be one of {VIEWS}, got {view!r}")
+        raise ValueError(f"view must be one of {VIEWS}, got {view!r}")
     right = np.cross(proximal, toward)  # forward = -toward; right = forward x up
     return np.stack([right, proximal, toward])
 
@@ -192,7 +191,7 @@ def render_mesh_values(
     triangles = np.asarray(triangles, dtype=np.int64)
     vertex_values = np.asarray(vertex_values, dtype=np.float64)
     if vertex_values.shape != (len(vertices),):
-        raise InputError(f"vertex_values must be ({len(vertices)},), got {vertex_values.shape}")
+        raise ValueError(f"vertex_values must be ({len(vertices)},), got {vertex_values.shape}")
     frames = [screen_axes(frame, v) for v in views]
     bounds = [_view_bounds(vertices, a) for a in frames]
     pixel = min((b[3] - b[2]) / height_px for b in bounds)
@@ -337,7 +336,7 @@ def histogram_png(path: str | Path, histograms: dict, *, title: str = "Share of 
     overflow are the outermost bars, labelled.
     """
     if not histograms:
-        raise InputError("no histograms to plot")
+        raise ValueError("no histograms to plot")
     fig = new_figure(1, 1.4)
     ax = fig.subplots()
     first = True

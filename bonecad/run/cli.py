@@ -15,7 +15,9 @@ from pathlib import Path
 from bonecad._version import __version__
 from bonecad.errors import BonecadError, InputError
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
+#: the package logger the command line prints to stderr (every module logs under it)
+package_log = logging.getLogger("bonecad")
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -123,9 +125,9 @@ def _setup_logging(args: argparse.Namespace) -> None:
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("bonecad: %(message)s"))
-    log.handlers[:] = [handler]
-    log.setLevel(level)
-    log.propagate = False
+    package_log.handlers[:] = [handler]
+    package_log.setLevel(level)
+    package_log.propagate = False
 
 
 def _print_inspect(summary: dict) -> None:

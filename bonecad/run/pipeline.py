@@ -31,7 +31,7 @@ from bonecad.analysis.model import ModelReport, model_continuity, model_deviatio
 from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
 from bonecad.contours.curves import ContourSet, assemble_contours, bone_coordinates, end_curves, shaft_curves
 from bonecad.errors import InputError
-from bonecad.export import export
+from bonecad.export.registry import export
 from bonecad.export.documents import FrameDocument
 from bonecad.export.report import ReportDocument
 from bonecad.mesh.bone_mesh import BoneMesh

@@ -36,7 +36,7 @@ from bonecad.tspline_model.caps import ApexCap, build_cap
 from bonecad.splines.tspline.fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm, voxel_step_mm
 from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
 
 #: Sewing tolerances tried in turn (mm).
 _SEWING_TOLERANCES_MM = (1e-4, 1e-3, 1e-2)

@@ -27,5 +27,6 @@ __all__ = [
     "refine_elements",
     "remove_segments",
     "save",
+    "to_dict",
     "t_junctions",
 ]

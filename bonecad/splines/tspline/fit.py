@@ -39,7 +39,7 @@ from bonecad.splines.tspline import BezierExtraction, KnotSegment, TSpline, inse
 from bonecad.splines.basis import bernstein3
 from bonecad.splines.lsq import normal_equations, solve_spd
 
-log = logging.getLogger("bonecad")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
