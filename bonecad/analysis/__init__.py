@@ -1,13 +1,12 @@
-"""Analysis stage: how good a CAD model is, in numbers and in pictures.
+"""Analysis stage: how good a CAD model is, in numbers (the pictures are ``bonecad.render``'s).
 
-Works on any OpenCascade shape against the polygonal model (plain arrays), so
-the NURBS baseline and the T-spline model share it:
+Works on any tessellated CAD shape against the polygonal model (plain arrays),
+so the NURBS baseline and the T-spline model share it:
 
 - :mod:`.deviation` signed deviation both ways, statistics, banded histograms
 - :mod:`.continuity` G0/G1/G2 across shared edges, knot continuity inside faces
-- :mod:`.render` offscreen images: deviation colour maps, zebra stripes
-- :mod:`.report` report.json and report.html
-- :mod:`.goldens` regression of deviation histograms against stored goldens
+- :mod:`.statistics` weighted statistics and histograms
+- :mod:`.model` one model's analysis (``ModelReport``) from its settings
 """
 from bonecad.analysis.deviation import DeviationResult, DirectionResult, sample_surface, shape_deviation, signed_distance_to_shape
 from bonecad.analysis.statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram

@@ -1,1 +1,2 @@
-"""Mesh intake: reading, cleanup, bodies, units, the tibia's own body."""
+"""Triangle meshes: the bone mesh and its intake (reading, cleanup, bodies, units), sampling, closest
+points, planar sections, and the tessellation of spline surfaces."""
