@@ -169,3 +169,17 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
         BRepGProp.VolumeProperties_s(shape, props, 1e-8)
         volumes.append(props.Mass())
     assert abs(volumes[0] - volumes[1]) < 1e-6 * volumes[1]
+
+
+def test_model_pickles_with_its_solid_and_face_names(model):
+    """A stage result crosses processes (a forked job's result, a Dask task): the solid goes as
+    OpenCascade's binary B-rep, exact, and every face keeps its name."""
+    import pickle
+
+    from bonecad.occ.brep import is_valid, volume_mm3
+
+    back = pickle.loads(pickle.dumps(model))
+    assert [n for n, _ in back.face_names] == [n for n, _ in model.face_names]
+    assert is_valid(back.shape) and volume_mm3(back.shape) == pytest.approx(volume_mm3(model.shape), rel=1e-12)
+    np.testing.assert_array_equal(back.tspline.control_points, model.tspline.control_points)
+    assert back.summary() == model.summary()
