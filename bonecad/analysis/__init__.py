@@ -9,7 +9,8 @@ the NURBS baseline and the T-spline model share it:
 - :mod:`.report` report.json and report.html
 - :mod:`.goldens` regression of deviation histograms against stored goldens
 """
-from bonecad.analysis.deviation import DeviationResult, DirectionResult, sample_surface, shape_deviation, signed_distance_to_shape
+from bonecad.analysis.deviation import (DeviationResult, DirectionResult, sample_surface, shape_deviation,
+                                        signed_distance_to_shape)
 from bonecad.analysis.statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
 from bonecad.mesh.tessellation import Tessellation, TessellationSettings
 from bonecad.occ.tessellate import tessellate

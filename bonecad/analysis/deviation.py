@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Union
+from collections.abc import Callable
 
 import numpy as np
 
@@ -46,7 +46,7 @@ from bonecad.mesh.tessellation import Tessellation
 #: the anatomical regions a caller can label samples with
 REGIONS = ("distal", "shaft", "proximal")
 
-RegionSpec = Union[Callable[[np.ndarray], np.ndarray], None]
+RegionSpec = Callable[[np.ndarray], np.ndarray] | None
 
 
 @dataclass(frozen=True)

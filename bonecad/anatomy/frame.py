@@ -154,7 +154,8 @@ def _unit_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     return n / np.maximum(norm, 1e-300)[:, None], 0.5 * norm
 
 
-def _check_ends_whole(bone: BoneMesh, centre: np.ndarray, axis: np.ndarray, heights: np.ndarray, lo: float, hi: float) -> None:
+def _check_ends_whole(bone: BoneMesh, centre: np.ndarray, axis: np.ndarray, heights: np.ndarray,
+                      lo: float, hi: float) -> None:
     """InputError when an end of the bone is a flat cut (a partial bone)."""
     normals, areas = _unit_normals(bone.vertices, bone.faces)
     face_h = heights[bone.faces].mean(axis=1)

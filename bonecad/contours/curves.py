@@ -86,7 +86,8 @@ class ContourSet:
                 "control_points_per_curve": curves[0].curve.count if curves else 0,
                 "tolerance_mm": curves[0].tolerance_mm if curves else None,
                 "worst_max_deviation_mm": round(max(c.max_deviation_mm for c in curves), 4) if curves else None,
-                "mean_rms_deviation_mm": round(float(np.mean([c.rms_deviation_mm for c in curves])), 4) if curves else None,
+                "mean_rms_deviation_mm": (round(float(np.mean([c.rms_deviation_mm for c in curves])), 4)
+                                          if curves else None),
                 "within_tolerance": sum(c.within_tolerance for c in curves),
             }
         return out

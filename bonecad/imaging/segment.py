@@ -250,7 +250,8 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
         return float(np.linalg.norm(gap - (gap @ limb) * limb))
 
     def beside(a: _Body, b: _Body) -> bool:
-        return overlap(a, b) >= _BESIDE_OVERLAP and apart(a, b) <= _BESIDE_DISTANCE_SHARE * max(a.length_mm, b.length_mm)
+        return (overlap(a, b) >= _BESIDE_OVERLAP
+                and apart(a, b) <= _BESIDE_DISTANCE_SHARE * max(a.length_mm, b.length_mm))
 
     long = [b for b in bodies if b.length_mm >= _LONG_SHARE * longest]
     fibulae = {}

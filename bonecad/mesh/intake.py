@@ -42,7 +42,8 @@ def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
-        raise InputError(f"cannot be read as a {path.suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})", path) from None
+        raise InputError(f"cannot be read as a {path.suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})",
+                         path) from None
     vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
     faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
     if len(faces) == 0 or len(vertices) < 4:

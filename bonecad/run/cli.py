@@ -137,7 +137,8 @@ def _print_inspect(summary: dict) -> None:
     print(f"watertight  {'yes' if summary['watertight'] else 'no'}")
     print(f"side        {summary['side']} (from the anatomy: medial malleolus, tuberosity)")
     print(f"axis length {summary['mechanical_axis_length_mm']} mm (plateau centre to plafond centre)")
-    print(f"plateau     ellipse semi-axes {summary['plateau_semi_axes_mm'][0]} x {summary['plateau_semi_axes_mm'][1]} mm")
+    semi_axes = summary['plateau_semi_axes_mm']
+    print(f"plateau     ellipse semi-axes {semi_axes[0]} x {semi_axes[1]} mm")
     print("bodies")
     for b in summary["bodies"]:
         kept = "kept" if b["role"] == "tibia" else "dropped"

@@ -38,7 +38,8 @@ import time
 import traceback
 from contextlib import ExitStack
 from multiprocessing.connection import Connection, wait
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
+from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,8 @@ Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
    (:mod:`.skinning`);
 2. fit the T-spline to every mesh vertex outside the apex holes (area
    weights; on a coarse mesh its edge midpoints instead), with parameter
-   correction and error-driven local refinement (:mod:`.fit`), until the tolerances hold or the control-point budget is hit;
+   correction and error-driven local refinement (:mod:`.fit`), until the
+   tolerances hold or the control-point budget is hit;
 3. fit a tensor-product B-spline to the same points and tolerances by
    refining whole knot lines, for the control-point comparison;
 4. cap the apex holes (:mod:`.caps`), extract Bezier patches, merge each
@@ -33,7 +34,8 @@ from bonecad.settings import TSplineSettings
 from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
-from bonecad.splines.tspline.fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm, voxel_step_mm
+from bonecad.splines.tspline.fit import (FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm,
+                                         voxel_step_mm)
 from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger(__name__)

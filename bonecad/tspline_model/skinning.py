@@ -157,7 +157,8 @@ def initial_mesh(par: Parameterisation, *, s_intervals: int, t_spacing_mm: float
     return mesh.with_edges(mesh.s_edges, t_edges)
 
 
-def skin(contours: ContourSet, par: Parameterisation, mesh: TMesh, *, fairness: float) -> tuple[TSpline, CurveData, np.ndarray]:
+def skin(contours: ContourSet, par: Parameterisation, mesh: TMesh, *,
+         fairness: float) -> tuple[TSpline, CurveData, np.ndarray]:
     """Least-squares skinning of the three curve sets on one T-mesh.
 
     Returns (T-spline, the curve data, distance of each curve point to the surface at its parameters, mm).

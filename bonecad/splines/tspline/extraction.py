@@ -103,7 +103,8 @@ def _clamp(x: np.ndarray, lo: float, hi: float, name: str) -> np.ndarray:
     tol = 1e-9 * max(hi - lo, 1.0)
     bad = (x < lo - tol) | (x > hi + tol) | ~np.isfinite(x)
     if bad.any():
-        raise ValueError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], e.g. {x[bad][0]}")
+        raise ValueError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], "
+                         f"e.g. {x[bad][0]}")
     return np.clip(x, lo, hi)
 
 

@@ -414,7 +414,8 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     rms_met = np.sqrt(np.sum(weights * distance**2) / weights.sum()) <= tol.rms_mm
     # once the share and the RMS hold, only the points beyond the maximum ask for more
     if cum[-1] > 0 and (deficit > 0 or not rms_met):
-        fraction = tol.mark_fraction if deficit <= 0 else min(tol.mark_fraction, tol.mark_deficit_factor * deficit / cum[-1])
+        fraction = (tol.mark_fraction if deficit <= 0
+                    else min(tol.mark_fraction, tol.mark_deficit_factor * deficit / cum[-1]))
         k = int(np.searchsorted(cum, fraction * cum[-1])) + 1
         marked[order[:k]] = True
     marked |= worst > tol.max_deviation_mm
@@ -577,7 +578,8 @@ def fit_adaptive(
             return FitResult(ts, s, t, dist, stats, history, True, "tolerances met")
         stalled = None if noise_mm is None else dist <= noise_mm
         if stalled is not None and _meets_up_to_noise(dist, w, stalled, tol):
-            stopped = (f"tolerances met up to the data's noise: {_share(w, stalled & (dist > tol.share_within[1])):.2%} "
+            beyond = _share(w, stalled & (dist > tol.share_within[1]))
+            stopped = (f"tolerances met up to the data's noise: {beyond:.2%} "
                        f"of the surface lies beyond {tol.share_within[1]} mm but within {tol.noise_factor} x the "
                        f"local noise; no point beyond {tol.max_deviation_mm} mm asks for more")
             break

@@ -27,7 +27,8 @@ new line crosses are touched, so the number of control points grows locally.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Literal
+from collections.abc import Sequence
 
 import numpy as np
 import scipy.sparse as sp

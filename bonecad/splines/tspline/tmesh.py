@@ -248,9 +248,11 @@ class TMesh:
         _check_lines(self.s_lines, "s_lines", periodic_span=self.s_period)
         n_s_seg = s_n if self.periodic else s_n - 1
         if self.s_edges.shape != (t_n, n_s_seg) or self.s_edges.dtype != bool:
-            raise ValueError(f"s_edges: expected bool ({t_n}, {n_s_seg}), got {self.s_edges.dtype} {self.s_edges.shape}")
+            raise ValueError(f"s_edges: expected bool ({t_n}, {n_s_seg}), "
+                             f"got {self.s_edges.dtype} {self.s_edges.shape}")
         if self.t_edges.shape != (s_n, t_n - 1) or self.t_edges.dtype != bool:
-            raise ValueError(f"t_edges: expected bool ({s_n}, {t_n - 1}), got {self.t_edges.dtype} {self.t_edges.shape}")
+            raise ValueError(f"t_edges: expected bool ({s_n}, {t_n - 1}), "
+                             f"got {self.t_edges.dtype} {self.t_edges.shape}")
         _check_strips(self.s_edges, self.t_edges, "t")
         if not self.periodic:
             _check_strips(self.t_edges, self.s_edges, "s")
