@@ -242,7 +242,6 @@ def anatomical_frame(
         lo, hi = -hi, -lo
 
     z = axis
-    plateau_centre = plafond_centre = None
     for _ in range(3):  # refine: plateau and plafond are sought perpendicular to the current axis
         plateau = _plateau(vertices, faces, centre, z, heights, hi, length, anat)
         plafond_centre = _plafond_centre(vertices, faces, centre, z, heights, lo, length, anat)

@@ -320,7 +320,7 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
     background, _ = ndimage.label(~mask)
     border = np.zeros(mask.shape, dtype=bool)
     for axis in range(mask.ndim):
-        index = [slice(None)] * mask.ndim
+        index: list[slice | int] = [slice(None)] * mask.ndim
         for end in (0, -1):
             index[axis] = end
             border[tuple(index)] = True

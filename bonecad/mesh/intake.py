@@ -108,7 +108,8 @@ def _principal_extent(points: np.ndarray) -> tuple[np.ndarray, float, float]:
     return vt[0], float(np.ptp(along)), width
 
 
-def _detect_scale(length: float, width: float, units: Units, path: Path, length_range: list[float]) -> float:
+def _detect_scale(length: float, width: float, units: Units, path: Path | None,
+                  length_range: tuple[float, float]) -> float:
     """Scale to mm; in auto mode a non-mm mesh is an error naming the --units option."""
     if units != "auto":
         return UNIT_SCALE_TO_MM[units]

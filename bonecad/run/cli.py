@@ -189,7 +189,8 @@ def _run(args: argparse.Namespace) -> None:
         else:
             _print_inspect(summary)
     elif args.command in ("frame", "curves", "reconstruct"):
-        until = {"frame": "frame", "curves": "curves", "reconstruct": "models"}[args.command]
+        stage: dict[str, pipeline.Until] = {"frame": "frame", "curves": "curves", "reconstruct": "models"}
+        until = stage[args.command]
         result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units)
         _print_result(result)
         print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")

@@ -216,8 +216,9 @@ def fit_curve(
     dropped = 0
     for round_ in range(3 if outlier_mm is not None else 1):
         u = centripetal_parameters(points, closed=periodic) if params is None else np.array(params, dtype=np.float64)
-        fit_knots = knots
-        if fit_knots is None:
+        if knots is not None:
+            fit_knots = knots
+        else:
             fit_knots = periodic_knots(count) if periodic else averaged_knots(u, count, degree)
         weights = np.ones(len(points))
         weights[pinned] = 1e8

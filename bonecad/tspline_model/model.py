@@ -185,7 +185,7 @@ def ring_constraints(
         e1 = np.array([1.0, 0.0, 0.0]) - axis[0] * axis
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(axis, e1)
-        angles = np.array([c.angle_deg % 360.0 for c in curves])
+        angles = np.array([c.angle % 360.0 for c in curves])
         heights = np.array([(c.curve(np.array([0.0]))[0] - origin) @ axis for c in curves])
         h = np.interp(theta, angles, heights, period=360.0)
         rad = np.radians(theta)

@@ -83,7 +83,7 @@ class BezierExtraction:
             raise ValueError(f"s and t: expected equal lengths, got {s.size} and {t.size}")
         t = _clamp(t, *mesh.t_range, "t")
         j = find_span(mesh.t_lines, t, END_LINES - 1)  # the end lines act as clamped knots
-        if mesh.periodic:
+        if mesh.s_period is not None:
             lo = mesh.s_lines[0]
             s = lo + np.mod(s - lo, mesh.s_period)
             i = np.clip(find_span(mesh.s_lines, s), 0, len(mesh.s_lines) - 1)
