@@ -9,7 +9,8 @@ closed-form distance |p| - R. Also times a whole ``shape_deviation`` (both
 directions) and a continuity pass.
 
 Then the analysis stage as ``reconstruct`` runs it, in one process (``analyse_shape``
-below: tessellation, deviation both ways, continuity, three PNGs) on the phantom tibia's NURBS model (target < 5 s) and on a shell of its
+below: tessellation, deviation both ways, continuity, three PNGs) on the phantom
+tibia's NURBS model (target < 5 s) and on a shell of its
 Bezier patches, about 3.5k Geom_BezierSurface faces sewn like a T-spline model
 (target < 7 s): best of 3 wall-clock and process time, and the load average
 (the 2 cores are shared: a loaded machine stretches wall time).
@@ -48,7 +49,8 @@ def main() -> None:
     t0 = time.perf_counter()
     tess = tessellate(shape, TESSELLATION)
     t_tess = time.perf_counter() - t0
-    print(f"tessellation: {len(tess.triangles)} triangles, {t_tess:.2f} s, chord error {tess.chord_error_mm.max():.4f} mm")
+    print(f"tessellation: {len(tess.triangles)} triangles, {t_tess:.2f} s, "
+          f"chord error {tess.chord_error_mm.max():.4f} mm")
 
     coarse = tessellate(shape, replace(TESSELLATION, deflection_mm=0.1, max_edge_mm=2.0))
     unit = coarse.vertices / RADIUS
@@ -150,7 +152,8 @@ def bench_models() -> None:
         print(f"analyse_model {name}: {len(faces(shape))} faces, mesh {len(bone.faces)} triangles: "
               f"{wall:.2f} s wall, {cpu:.2f} s process (best of 3; target < {target:g} s; "
               f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores)")
-        print(f"  steps {({k: round(v, 2) for k, v in dev.timings_s.items()})}; RMS {dev.mesh_to_cad.stats.rms_mm:.4f} mm, "
+        print(f"  steps {({k: round(v, 2) for k, v in dev.timings_s.items()})}; "
+              f"RMS {dev.mesh_to_cad.stats.rms_mm:.4f} mm, "
               f"refined {100 * dev.mesh_to_cad.refined.mean():.3f} % / {100 * dev.cad_to_mesh.refined.mean():.3f} %, "
               f"unrefined bound {dev.unrefined_bound_mm:.4f} mm")
 

@@ -53,7 +53,8 @@ def deviation_line(model_shape, vertices, faces) -> str:
     dev = shape_deviation(vertices, faces, tessellate(model_shape, TESSELLATION), edges_mm=BANDS_MM,
                           sample_points=100_000)
     m2c, c2m = dev.mesh_to_cad, dev.cad_to_mesh
-    return (f"mesh->CAD within {WITHIN_MM} mm {m2c.share_within(WITHIN_MM):.4f}, max {np.abs(m2c.deviation_mm).max():.3f}, "
+    return (f"mesh->CAD within {WITHIN_MM} mm {m2c.share_within(WITHIN_MM):.4f}, "
+            f"max {np.abs(m2c.deviation_mm).max():.3f}, "
             f"RMS {m2c.stats.rms_mm:.3f} mm; CAD->mesh within {c2m.share_within(WITHIN_MM):.4f}, "
             f"max {np.abs(c2m.deviation_mm).max():.3f} mm")
 

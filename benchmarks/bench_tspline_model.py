@@ -1,7 +1,8 @@
 """Benchmark of the T-spline tibia model on the real meshes: prints, per mesh,
 control points (T-spline vs a tensor-product B-spline fitted to the same
 tolerance), the fit figures (share within 0.25 mm, max, RMS, on the fit's
-points: the vertices of a fine mesh, the edge midpoints of a coarse one), an independent deviation check of the closed solid
+points: the vertices of a fine mesh, the edge midpoints of a coarse one), an
+independent deviation check of the closed solid
 (bonecad.analysis.shape_deviation, both directions), cap continuity and time.
 
 Targets: 99 % within 0.25 mm, max <= 1 mm, RMS <= 0.1 mm; T-spline control
@@ -65,7 +66,8 @@ def main(paths: list[Path]) -> None:
               f" the tolerances ({model.fit.stopped})")
         print(f"  tensor product: {tp} control points (converged: {compared.tensor_product_converged}; "
               f"{compared.tensor_product_fit.stopped}); ratio {model.control_points / tp:.3f}")
-        print(f"  fit (its points: the vertices of a fine mesh, the edge midpoints of a coarse one): within 0.25 mm {fs.share_within:.4f}, max {fs.max_mm:.3f} mm, RMS {fs.rms_mm:.4f} mm")
+        print(f"  fit (its points: the vertices of a fine mesh, the edge midpoints of a coarse one): "
+              f"within 0.25 mm {fs.share_within:.4f}, max {fs.max_mm:.3f} mm, RMS {fs.rms_mm:.4f} mm")
         if dev is None:
             print(f"  solid vs mesh: analysis refused the tessellation ({dev_error})")
         else:
@@ -77,7 +79,8 @@ def main(paths: list[Path]) -> None:
         for cap in model.caps:
             print(f"  {cap.end} cap: ring normal angle max {cap.ring_angle_deg[0]:.2e} deg (G1), "
                   f"pole normal spread {cap.pole_spread_deg:.3f} deg")
-        print(f"  time: T-spline stage {stage:.1f} s ({', '.join(f'{k} {v:.1f}' for k, v in model.timings_s.items())}); "
+        steps = ", ".join(f"{k} {v:.1f}" for k, v in model.timings_s.items())
+        print(f"  time: T-spline stage {stage:.1f} s ({steps}); "
               f"tensor-product comparison {tp_time:.1f} s (whole second build {t_all:.1f} s)", flush=True)
 
 

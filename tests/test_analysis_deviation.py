@@ -86,7 +86,8 @@ def test_sphere_against_its_own_tessellation_is_at_the_tessellation_bound(sphere
     """Done-when of issue 4: a B-spline sphere vs its own tessellation."""
     coarse = tessellate(sphere, replace(TESSELLATION, deflection_mm=0.05))
     bound = coarse.chord_error_mm.max()
-    result = shape_deviation(coarse.vertices, coarse.triangles, tessellate(sphere, TESSELLATION), edges_mm=BANDS_MM, sample_points=20000)
+    result = shape_deviation(coarse.vertices, coarse.triangles, tessellate(sphere, TESSELLATION), edges_mm=BANDS_MM,
+                             sample_points=20000)
     fwd = result.mesh_to_cad
     exact = np.linalg.norm(fwd.points, axis=1) - RADIUS
     np.testing.assert_allclose(fwd.deviation_mm, exact, atol=1e-8)
@@ -133,7 +134,8 @@ def test_shape_samples_lie_on_the_exact_surface_with_area_weights(sphere):
 
 def test_sign_is_positive_for_a_mesh_outside_the_model(sphere, sphere_fine):
     scale = 1.01  # mesh 0.1 mm outside the sphere everywhere
-    result = shape_deviation(sphere_fine.vertices * scale, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM, sample_points=5000)
+    result = shape_deviation(sphere_fine.vertices * scale, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM,
+                             sample_points=5000)
     fwd, back = result.mesh_to_cad, result.cad_to_mesh
     assert fwd.stats.mean_mm == pytest.approx(0.1, abs=0.01)
     assert back.stats.mean_mm == pytest.approx(0.1, abs=0.01)
@@ -183,7 +185,8 @@ def test_regions_partition_the_histogram(sphere, sphere_fine):
     def regions(points):
         return np.where(points[:, 2] < -5, "distal", np.where(points[:, 2] > 5, "proximal", "shaft"))
 
-    result = shape_deviation(sphere_fine.vertices * 1.02, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM, sample_points=6000, regions=regions)
+    result = shape_deviation(sphere_fine.vertices * 1.02, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM,
+                             sample_points=6000, regions=regions)
     fwd = result.mesh_to_cad
     assert set(fwd.region_stats) == {"distal", "shaft", "proximal"}
     total = sum(fwd.region_stats[r].area_mm2 for r in fwd.region_stats)
@@ -196,7 +199,8 @@ def test_regions_partition_the_histogram(sphere, sphere_fine):
 
 def test_bad_region_labels_are_refused(sphere, sphere_fine):
     with pytest.raises(ValueError, match="unknown region labels"):
-        shape_deviation(sphere_fine.vertices, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM, sample_points=100, regions=lambda p: np.full(len(p), "femur"))
+        shape_deviation(sphere_fine.vertices, sphere_fine.triangles, sphere_fine, edges_mm=BANDS_MM,
+                        sample_points=100, regions=lambda p: np.full(len(p), "femur"))
 
 
 def test_closest_points_match_brute_force():

@@ -107,7 +107,8 @@ def test_report_json_and_html(sphere, tmp_path):
         ModelReport("tspline", {"faces": 1, "control_points": 30, "cap_control_points": 4}, dev,
                     seam_continuity(shape, tolerances=CONTINUITY), None, {}),
     ]
-    files = export("report", ReportDocument(input_summary={"file": "sphere", "triangles": len(f)}, frame={"axes": frame},
+    files = export("report", ReportDocument(input_summary={"file": "sphere", "triangles": len(f)},
+                                            frame={"axes": frame},
                                             models=tuple(models), timings_s=dict(dev.timings_s)), tmp_path)
     json_path, html_path = files["json"], files["html"]
     report = json.loads(json_path.read_text())
@@ -115,7 +116,8 @@ def test_report_json_and_html(sphere, tmp_path):
     stats = report["models"]["nurbs"]["deviation"]["mesh_to_cad"]["stats"]
     assert stats["rms_mm"] == pytest.approx(dev.mesh_to_cad.stats.rms_mm)
     assert set(report["models"]["nurbs"]["deviation"]["mesh_to_cad"]["regions"]) == {"distal", "shaft", "proximal"}
-    assert report["models"]["nurbs"]["figures"] == {"deviation map": "deviation_nurbs.png", "histogram": "histogram_nurbs.png"}
+    assert report["models"]["nurbs"]["figures"] == {"deviation map": "deviation_nurbs.png",
+                                                    "histogram": "histogram_nurbs.png"}
     rows = {r["quantity"]: r for r in report["comparison"]}
     counts = rows["control points (all faces, apex caps included)"]
     assert counts["nurbs"] == 45 and counts["tspline"] == 34
@@ -135,5 +137,6 @@ def test_report_without_both_models_has_no_comparison(tmp_path):
     assert "NURBS versus T-spline" not in html_path.read_text()
     with pytest.raises(FileNotFoundError, match="missing"):
         export("report", ReportDocument(input_summary={}, frame={},
-                                        models=(ModelReport("nurbs", figures={"x": tmp_path / "no.png"}),), timings_s={}),
+                                        models=(ModelReport("nurbs", figures={"x": tmp_path / "no.png"}),),
+                                        timings_s={}),
                tmp_path)

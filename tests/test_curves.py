@@ -129,7 +129,8 @@ def test_holes_and_noise(phantom, phantom_frame, phantom_contours, rng):
     vertices = mesh.vertices + rng.normal(scale=0.05, size=mesh.vertices.shape)
     spiky = rng.choice(len(vertices), 40, replace=False)
     vertices[spiky] += mesh.vertex_normals[spiky] * 3.0
-    holed = prepare_bone(vertices, mesh.faces[keep], source="holed phantom", settings=SETTINGS.mesh, plausible=SETTINGS.units)
+    holed = prepare_bone(vertices, mesh.faces[keep], source="holed phantom", settings=SETTINGS.mesh,
+                         plausible=SETTINGS.units)
     assert any("closed holes" in r for r in holed.repairs)
     contours = contour_curves(holed, bonecad.anatomical_frame(holed), settings=SETTINGS.curves)
     assert len(contours.distal) == 28 and len(contours.proximal) == 28

@@ -38,7 +38,8 @@ def _nurbs_deviation(stem: str, perturb_mm: float = 0.0):
     shape = build_nurbs(contours, settings=SETTINGS.nurbs).shape
     if perturb_mm:
         shape = _moved(shape, perturb_mm)
-    return shape_deviation(bone.vertices, bone.faces, tessellate(shape, TESSELLATION), regions=region_labels(frame), edges_mm=BANDS_MM, sample_points=SAMPLES)
+    return shape_deviation(bone.vertices, bone.faces, tessellate(shape, TESSELLATION), regions=region_labels(frame),
+                           edges_mm=BANDS_MM, sample_points=SAMPLES)
 
 
 def _moved(shape, distance_mm: float):
@@ -64,8 +65,10 @@ def test_tspline_histogram_matches_golden():
 
     stem = REFERENCES[0]
     bone, frame, contours = _reference(stem)
-    shape = build_tspline_model(bone, frame, contours, settings=SETTINGS.tspline, apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm).shape
-    deviation = shape_deviation(bone.vertices, bone.faces, tessellate(shape, TESSELLATION), regions=region_labels(frame), edges_mm=BANDS_MM, sample_points=SAMPLES)
+    shape = build_tspline_model(bone, frame, contours, settings=SETTINGS.tspline,
+                                apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm).shape
+    deviation = shape_deviation(bone.vertices, bone.faces, tessellate(shape, TESSELLATION),
+                                regions=region_labels(frame), edges_mm=BANDS_MM, sample_points=SAMPLES)
     assert_histogram_matches(deviation.mesh_to_cad.histogram, f"tspline_{stem}", tolerance=TOLERANCE)
 
 

@@ -141,7 +141,8 @@ def test_deviation_from_the_phantom_mesh(ring_model, phantom):
     from bonecad.analysis import shape_deviation
 
     # 0.1 mm chords are enough: every sample is refined on the exact surface (checked below)
-    result = shape_deviation(phantom.vertices, phantom.faces, tessellate(ring_model.shape, replace(TESSELLATION, deflection_mm=0.1, max_edge_mm=2.0)), edges_mm=BANDS_MM, sample_points=20000)
+    tess = tessellate(ring_model.shape, replace(TESSELLATION, deflection_mm=0.1, max_edge_mm=2.0))
+    result = shape_deviation(phantom.vertices, phantom.faces, tess, edges_mm=BANDS_MM, sample_points=20000)
     for direction in (result.mesh_to_cad, result.cad_to_mesh):
         dev, w = np.abs(direction.deviation_mm), direction.weights
         assert direction.refined.mean() > 0.99
@@ -187,7 +188,8 @@ def test_left_tibia_gives_an_outward_solid(contours, phantom, ring_model):
     # The same bone mirrored in scanner space: bone coordinates (and curves) stay the same, the
     # frame becomes a mirror. The solid must still be valid with outward faces (positive volume).
     mirror = np.diag([-1.0, 1.0, 1.0])
-    frame = dataclasses.replace(contours.frame, axes=contours.frame.axes @ mirror, origin=contours.frame.origin @ mirror)
+    frame = dataclasses.replace(contours.frame, axes=contours.frame.axes @ mirror,
+                                origin=contours.frame.origin @ mirror)
     assert frame.mirrored
     left = build_nurbs(dataclasses.replace(contours, frame=frame), settings=replace(SETTINGS.nurbs, apex_fill="ring"))
     check_solid(left, mesh_volume(phantom.vertices @ mirror, phantom.faces[:, ::-1]))

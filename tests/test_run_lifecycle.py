@@ -53,7 +53,8 @@ def cli(*args) -> list[str]:
 
 
 def run_processes(marker: Path) -> dict[int, str]:
-    """pid -> "parent, state, kernel wait channel" of every live process (not a zombie) whose command line holds ``marker``."""
+    """pid -> "parent, state, kernel wait channel" of every live process (not a zombie) whose command line
+    holds ``marker``."""
     needle = str(marker).encode()
     found = {}
     for entry in Path("/proc").iterdir():
@@ -161,7 +162,8 @@ def check_one_line_error(code: int, stderr: str) -> list[str]:
     elif code in (1, 2):
         prefix = "bonecad: error: " if code == 2 else "bonecad: internal error: "
         if not lines[0].startswith(prefix) or len(lines[0]) <= len(prefix) + 10:
-            problems.append(f"exit {code} with stderr {lines[0]!r}; expected a line starting {prefix!r} naming the problem")
+            problems.append(f"exit {code} with stderr {lines[0]!r}; "
+                            f"expected a line starting {prefix!r} naming the problem")
     if "Traceback" in stderr:
         problems.append("a traceback on stderr")
     return problems

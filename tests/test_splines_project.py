@@ -17,7 +17,8 @@ def quarter_cylinder(radius: float = 10.0, height: float = 20.0) -> SplineSurfac
         poles[:, j, 0:2] = arc[:, 0:2]
         poles[:, j, 2] = z * arc[:, 2]
         poles[:, j, 3] = arc[:, 2]
-    return SplineSurface(2, 1, np.array([0, 0, 0, 1, 1, 1.0]), np.array([0, 0, 1, 1.0]), poles, np.array([0, 1, 0, 1.0]))
+    return SplineSurface(2, 1, np.array([0, 0, 0, 1, 1, 1.0]), np.array([0, 0, 1, 1.0]), poles,
+                         np.array([0, 1, 0, 1.0]))
 
 
 def test_projection_onto_a_cylinder_finds_the_radial_foot_point():

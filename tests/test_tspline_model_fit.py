@@ -31,7 +31,8 @@ def cylinder(n_s: int, n_t: int) -> TSpline:
     th = 2 * np.pi * np.arange(n_s) / n_s
     z = np.linspace(0.0, LENGTH, n_t + 2)
     cp = np.stack(
-        [RADIUS * np.cos(th)[:, None] + 0 * z, RADIUS * np.sin(th)[:, None] + 0 * z, np.broadcast_to(z, (n_s, n_t + 2))],
+        [RADIUS * np.cos(th)[:, None] + 0 * z, RADIUS * np.sin(th)[:, None] + 0 * z,
+         np.broadcast_to(z, (n_s, n_t + 2))],
         axis=-1,
     )
     return TSpline.from_grid(np.arange(n_s) * PERIOD / n_s, np.linspace(0.0, LENGTH, n_t), cp, s_period=PERIOD)
@@ -117,7 +118,8 @@ def test_local_refinement_needs_fewer_control_points_than_a_tensor_product(tol_m
 def test_budget_stops_refinement_and_says_so():
     rng = np.random.default_rng(3)
     pts, s, t = bumpy_tube(4000, rng)
-    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.001), max_deviation_mm=0.002, rms_mm=0.0005, max_control_points=150)
+    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.001), max_deviation_mm=0.002, rms_mm=0.0005,
+                  max_control_points=150)
     res = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6)
     assert not res.converged
     assert "budget (150)" in res.stopped
@@ -135,7 +137,8 @@ def test_staircase_is_recognised_and_stops_refinement_at_its_noise():
     assert voxel_step_mm(stair) == pytest.approx(1.0)
     noise = local_noise_mm(stair, voxel_mm=voxel_step_mm(stair))
     assert noise.min() >= 1.0 / np.sqrt(12) - 1e-12
-    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.1), max_deviation_mm=1.0, rms_mm=0.05, max_control_points=5000,
+    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.1), max_deviation_mm=1.0, rms_mm=0.05,
+                  max_control_points=5000,
                         min_element_mm=0.05, max_rounds=8, mark_fraction=0.6)
     free = fit_adaptive(cylinder(8, 4), stair, s=s, t=t, tolerances=tol, fairness=1e-6)
     aware = fit_adaptive(cylinder(8, 4), stair, s=s, t=t, tolerances=tol, fairness=1e-6, noise=noise)

@@ -21,7 +21,8 @@ def model(phantom, phantom_frame):
     from bonecad.contours.curves import contour_curves
 
     contours = contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
-    return build_tspline_model(phantom, phantom_frame, contours, settings=SETTINGS.tspline, apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
+    return build_tspline_model(phantom, phantom_frame, contours, settings=SETTINGS.tspline,
+                               apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
 
 
 def test_fit_meets_the_bars_with_local_refinement(model):
@@ -85,7 +86,8 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
     assert abs(props.Mass() - mesh_volume) < 0.01 * mesh_volume
     # small, strongly curved faces (apex caps, plateau rim) lose up to ~0.6 % of area to the
     # chordal tessellation: allow 1 % instead of the 0.5 % default
-    dev = shape_deviation(phantom.vertices, phantom.faces, tessellate(shape, replace(TESSELLATION, coverage_tolerance=0.01)), edges_mm=BANDS_MM, sample_points=20000)
+    tess = tessellate(shape, replace(TESSELLATION, coverage_tolerance=0.01))
+    dev = shape_deviation(phantom.vertices, phantom.faces, tess, edges_mm=BANDS_MM, sample_points=20000)
     d = np.abs(dev.mesh_to_cad.deviation_mm)
     w = dev.mesh_to_cad.weights
     assert w[d <= 0.25].sum() / w.sum() >= 0.99
@@ -119,7 +121,8 @@ def test_write_tspline_round_trips(model, tmp_path):
     # the JSON tube is the model's tube mapped to scanner coordinates
     s = np.linspace(0, model.parameterisation.s_period, 50, endpoint=False)
     t = np.linspace(0, model.parameterisation.t_end, 50)
-    assert np.allclose(tube.evaluate(s, t).points, model.frame.to_scanner(model.tspline.evaluate(s, t).points), atol=1e-9)
+    assert np.allclose(tube.evaluate(s, t).points, model.frame.to_scanner(model.tspline.evaluate(s, t).points),
+                       atol=1e-9)
 
 
 def model_volume(model) -> float:
@@ -154,7 +157,7 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
     assert n_faces == sum(len(tensor_product_blocks(p)) for p in patches) < elements // 4
     # the merged B-spline faces are the T-spline itself (scanner coordinates)
     tube = model.tspline
-    for surf, block in merged_surfaces(to_scanner(tube, model.frame)):
+    for surf, _block in merged_surfaces(to_scanner(tube, model.frame)):
         if not isinstance(surf, Geom_BSplineSurface):
             continue
         u0, u1, v0, v1 = surf.Bounds()
@@ -164,7 +167,8 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
         assert np.abs(got - want).max() < 1e-6
     # and enclose the volume of the one-face-per-element solid
     volumes = []
-    for shape in (model.shape, _occ_shape(model.tspline, model.caps, model.parameterisation, model.frame, merge=False)[0]):
+    split = _occ_shape(model.tspline, model.caps, model.parameterisation, model.frame, merge=False)[0]
+    for shape in (model.shape, split):
         props = GProp_GProps()
         BRepGProp.VolumeProperties_s(shape, props, 1e-8)
         volumes.append(props.Mass())

@@ -46,7 +46,8 @@ def test_staircase_is_the_binary_mask_surface(truth, staircase):
     assert staircase.bodies[0].volume_mm3 == pytest.approx(truth.bodies[0].volume_mm3, rel=0.01)
     samples = sample_surface(staircase.vertices, staircase.faces, 50_000, seed=0)
     d = distance_to_surface(truth.to_trimesh(), samples.points)
-    assert 0.7 < share_within(d, samples.weights, 0.25) < 0.85  # the bone itself misses the 99 % bar against its staircase
+    # the bone itself misses the 99 % bar against its staircase
+    assert 0.7 < share_within(d, samples.weights, 0.25) < 0.85
     assert d.max() < 0.6  # but it lies within about half a voxel of every step
 
 
@@ -57,13 +58,15 @@ def test_fit_to_the_staircase_recovers_the_bone(truth, staircase):
     from bonecad.tspline_model import build_tspline_model
 
     frame = bonecad.anatomical_frame(staircase)
-    model = build_tspline_model(staircase, frame, contour_curves(staircase, frame, settings=SETTINGS.curves), settings=SETTINGS.tspline, apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
+    model = build_tspline_model(staircase, frame, contour_curves(staircase, frame, settings=SETTINGS.curves),
+                                settings=SETTINGS.tspline, apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
     assert "up to the data's noise" in model.fit.stopped, model.fit.stopped
     assert model.summary()["staircase_voxel_mm"] == pytest.approx(1.0)
     # Chasing the steps to the 20000-point budget took 19484 points and left the
     # surface farther from the bone (92 % within 0.25 mm): the noise stop needs 1228.
     assert model.control_points < 3000
-    dev = shape_deviation(truth.vertices, truth.faces, tessellate(model.shape, replace(TESSELLATION, coverage_tolerance=0.01)), edges_mm=BANDS_MM, sample_points=50_000)
+    tess = tessellate(model.shape, replace(TESSELLATION, coverage_tolerance=0.01))
+    dev = shape_deviation(truth.vertices, truth.faces, tess, edges_mm=BANDS_MM, sample_points=50_000)
     bone_to_model = dev.mesh_to_cad
     assert bone_to_model.share_within(0.25) >= 0.96
     assert np.abs(bone_to_model.deviation_mm).max() <= 1.0

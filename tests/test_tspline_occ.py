@@ -33,7 +33,8 @@ def test_tensor_product_equals_occ_bspline_surface(rational):
 
 def test_open_tensor_product_equals_occ_bspline_surface():
     rng = np.random.default_rng(2)
-    ts = TSpline.from_grid([0.0, 0.4, 1.1, 2.0], [0.0, 0.5, 1.0, 3.0], rng.normal(size=(6, 6, 3)), rng.uniform(0.5, 2, (6, 6)))
+    ts = TSpline.from_grid([0.0, 0.4, 1.1, 2.0], [0.0, 0.5, 1.0, 3.0], rng.normal(size=(6, 6, 3)),
+                           rng.uniform(0.5, 2, (6, 6)))
     surf = occ.bspline_surface(ts)
     s, t = rng.uniform(0, 2, 300), rng.uniform(0, 3, 300)
     assert np.abs(_values(surf, s, t) - ts.evaluate(s, t).points).max() < 1e-9 * size(ts)

@@ -12,7 +12,8 @@ from tests.test_tspline_core import random_params, size, t_tube, tube
 
 
 @settings(max_examples=12, deadline=None)
-@given(seed=st.integers(0, 10_000), picks=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=6), rounds=st.integers(1, 3))
+@given(seed=st.integers(0, 10_000), picks=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=6),
+       rounds=st.integers(1, 3))
 def test_refinement_keeps_the_surface_and_analysis_suitability(seed, picks, rounds):
     ts = tube(10, 7, seed=seed % 5, rational=bool(seed % 2))
     rng = np.random.default_rng(seed)
@@ -182,7 +183,8 @@ def test_removal_refuses_meshes_that_lose_suitability():
 
 
 @settings(max_examples=10, deadline=None)
-@given(seed=st.integers(0, 10_000), picks=st.lists(st.floats(0.0, 1.0), min_size=2, max_size=10), rounds=st.integers(1, 3))
+@given(seed=st.integers(0, 10_000), picks=st.lists(st.floats(0.0, 1.0), min_size=2, max_size=10),
+       rounds=st.integers(1, 3))
 def test_one_way_splits_keep_the_surface_and_add_fewer_control_points(seed, picks, rounds):
     ts = four = tube(10, 7, seed=seed % 5, rational=bool(seed % 2))
     rng = np.random.default_rng(seed)

@@ -8,7 +8,8 @@ so the NURBS baseline and the T-spline model share it:
 - :mod:`.statistics` weighted statistics and histograms
 - :mod:`.model` one model's analysis (``ModelReport``) from its settings
 """
-from bonecad.analysis.deviation import DeviationResult, DirectionResult, sample_surface, shape_deviation, signed_distance_to_shape
+from bonecad.analysis.deviation import (DeviationResult, DirectionResult, sample_surface, shape_deviation,
+                                        signed_distance_to_shape)
 from bonecad.analysis.statistics import DeviationStats, Histogram, band_edges, deviation_stats, histogram
 from bonecad.mesh.tessellation import Tessellation, TessellationSettings
 from bonecad.occ.tessellate import tessellate

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Union
+from collections.abc import Callable
 
 import numpy as np
 
@@ -46,7 +46,7 @@ from bonecad.mesh.tessellation import Tessellation
 #: the anatomical regions a caller can label samples with
 REGIONS = ("distal", "shaft", "proximal")
 
-RegionSpec = Union[Callable[[np.ndarray], np.ndarray], None]
+RegionSpec = Callable[[np.ndarray], np.ndarray] | None
 
 
 @dataclass(frozen=True)
@@ -190,7 +190,7 @@ def signed_distance_to_shape(
     refined = np.zeros(len(points), dtype=bool)
     tri = tess.triangles[near.triangle]
     uv_start = np.einsum("nk,nkj->nj", near.barycentric, tess.uv[tri])
-    sset = tess.surface_set
+    sset = tess.packed_surfaces
     sel = np.flatnonzero(sset.group[face] >= 0)
     if len(sel):
         proj = project_faces(sset, face[sel], points[sel], uv_start[sel])
@@ -240,7 +240,7 @@ def sample_shape(tess: Tessellation, count: int, *, seed: int = 0) -> tuple[np.n
     weights = samples.weights.copy()
     on_surface = np.zeros(count, dtype=bool)
     face = tess.triangle_face[samples.triangle]
-    sset = tess.surface_set
+    sset = tess.packed_surfaces
     sel = np.flatnonzero(sset.group[face] >= 0)
     if len(sel):
         t = samples.triangle[sel]
@@ -274,7 +274,7 @@ def _retry_across(tess: Tessellation, points, rows, stopped_foot, face, residual
 
     if len(rows) == 0:
         return
-    sset = tess.surface_set
+    sset = tess.packed_surfaces
     k = min(_ACROSS_NODES, len(tess.vertices))
     _, nodes = cKDTree(tess.vertices).query(stopped_foot, k=k)
     nodes = nodes.reshape(len(rows), k)

@@ -74,7 +74,7 @@ class Histogram:
         return {"edges_mm": self.edges_mm.tolist(), "shares": self.shares.tolist()}
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "Histogram":
+    def from_dict(cls, data: dict[str, Any]) -> Histogram:
         edges = np.asarray(data["edges_mm"], dtype=np.float64)
         shares = np.asarray(data["shares"], dtype=np.float64)
         if shares.shape != (len(edges) + 1,):

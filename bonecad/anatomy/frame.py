@@ -154,7 +154,8 @@ def _unit_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     return n / np.maximum(norm, 1e-300)[:, None], 0.5 * norm
 
 
-def _check_ends_whole(bone: BoneMesh, centre: np.ndarray, axis: np.ndarray, heights: np.ndarray, lo: float, hi: float) -> None:
+def _check_ends_whole(bone: BoneMesh, centre: np.ndarray, axis: np.ndarray, heights: np.ndarray,
+                      lo: float, hi: float) -> None:
     """InputError when an end of the bone is a flat cut (a partial bone)."""
     normals, areas = _unit_normals(bone.vertices, bone.faces)
     face_h = heights[bone.faces].mean(axis=1)
@@ -241,7 +242,6 @@ def anatomical_frame(
         lo, hi = -hi, -lo
 
     z = axis
-    plateau_centre = plafond_centre = None
     for _ in range(3):  # refine: plateau and plafond are sought perpendicular to the current axis
         plateau = _plateau(vertices, faces, centre, z, heights, hi, length, anat)
         plafond_centre = _plafond_centre(vertices, faces, centre, z, heights, lo, length, anat)

@@ -54,6 +54,20 @@ class ContourCurve:
         return f"{self.region}_{self.index:02d}_z{self.level_mm:.0f}mm"  # STEP names take no dots
 
     @property
+    def angle(self) -> float:
+        """``angle_deg`` of a half-plane curve (distal, proximal); ValueError for a shaft curve."""
+        if self.angle_deg is None:
+            raise ValueError(f"{self.name}: not a half-plane curve (no angle)")
+        return self.angle_deg
+
+    @property
+    def level(self) -> float:
+        """``level_mm`` of a shaft curve; ValueError for a half-plane curve."""
+        if self.level_mm is None:
+            raise ValueError(f"{self.name}: not a shaft curve (no level)")
+        return self.level_mm
+
+    @property
     def within_tolerance(self) -> bool:
         return self.max_deviation_mm <= self.tolerance_mm
 
@@ -86,7 +100,8 @@ class ContourSet:
                 "control_points_per_curve": curves[0].curve.count if curves else 0,
                 "tolerance_mm": curves[0].tolerance_mm if curves else None,
                 "worst_max_deviation_mm": round(max(c.max_deviation_mm for c in curves), 4) if curves else None,
-                "mean_rms_deviation_mm": round(float(np.mean([c.rms_deviation_mm for c in curves])), 4) if curves else None,
+                "mean_rms_deviation_mm": (round(float(np.mean([c.rms_deviation_mm for c in curves])), 4)
+                                          if curves else None),
                 "within_tolerance": sum(c.within_tolerance for c in curves),
             }
         return out

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
+from collections.abc import Callable, Iterable
 
 ExportFn = Callable[[Any, Path], Path]
 

@@ -97,7 +97,7 @@ def comparison_rows(models: list[ModelReport]) -> list[dict[str, Any]] | None:
         {
             "quantity": "continuity class (worst seam)",
             **{
-                n: (by_name[n].continuity.summary()["worst_class"] if by_name[n].continuity else None)
+                n: (cont.summary()["worst_class"] if (cont := by_name[n].continuity) else None)
                 for n in ("nurbs", "tspline")
             },
         }
@@ -113,7 +113,7 @@ def comparison_rows(models: list[ModelReport]) -> list[dict[str, Any]] | None:
             {
                 "quantity": f"surface within {limit:g} mm",
                 **{
-                    n: (by_name[n].deviation.mesh_to_cad.share_within(limit) if by_name[n].deviation else None)
+                    n: (dev.mesh_to_cad.share_within(limit) if (dev := by_name[n].deviation) else None)
                     for n in ("nurbs", "tspline")
                 },
             }
@@ -123,7 +123,7 @@ def comparison_rows(models: list[ModelReport]) -> list[dict[str, Any]] | None:
             {
                 "quantity": label,
                 **{
-                    n: (getattr(by_name[n].deviation.mesh_to_cad.stats, key) if by_name[n].deviation else None)
+                    n: (getattr(dev.mesh_to_cad.stats, key) if (dev := by_name[n].deviation) else None)
                     for n in ("nurbs", "tspline")
                 },
             }

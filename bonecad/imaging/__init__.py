@@ -8,4 +8,5 @@ from bonecad.imaging.compare import RoundTrip, SurfaceDistance, round_trip, surf
 from bonecad.imaging.phantom import mesh_to_ct
 from bonecad.imaging.segment import segment_bone, surface_level
 
-__all__ = ["RoundTrip", "SurfaceDistance", "mesh_to_ct", "round_trip", "segment_bone", "surface_distance", "surface_level"]
+__all__ = ["RoundTrip", "SurfaceDistance", "mesh_to_ct", "round_trip", "segment_bone", "surface_distance",
+           "surface_level"]

@@ -55,8 +55,8 @@ def staircase_mesh(vertices: np.ndarray, faces: np.ndarray, voxel_mm: float) -> 
 
     vertices = np.asarray(vertices, dtype=np.float64)
     origin = vertices.min(axis=0) - 2.0 * voxel_mm
-    shape = tuple(int(n) for n in np.ceil((vertices.max(axis=0) - origin) / voxel_mm)[::-1] + 3)
-    mask = occupancy(vertices, faces, origin, voxel_mm, shape) >= 0.5
+    nz, ny, nx = (int(n) for n in np.ceil((vertices.max(axis=0) - origin) / voxel_mm)[::-1] + 3)
+    mask = occupancy(vertices, faces, origin, voxel_mm, (nz, ny, nx)) >= 0.5
     grid_vertices, grid_faces, _, _ = marching_cubes(mask.astype(np.float32), 0.5, allow_degenerate=False)
     return grid_vertices[:, ::-1] * voxel_mm + origin, grid_faces.astype(np.int64)
 

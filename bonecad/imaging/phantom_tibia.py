@@ -49,8 +49,10 @@ def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> n
     L = p.length_mm
     top = _smoothstep((z - 0.70 * L) / (0.26 * L))  # 0 in the shaft, 1 at the plateau
     bottom = _smoothstep((0.16 * L - z) / (0.14 * L))  # 1 at the plafond
-    half_w = 0.5 * (p.shaft_width_mm + top * (p.plateau_width_mm - p.shaft_width_mm) + bottom * (p.distal_width_mm - p.shaft_width_mm))
-    half_d = 0.5 * (p.shaft_depth_mm + top * (p.plateau_depth_mm - p.shaft_depth_mm) + bottom * (p.distal_depth_mm - p.shaft_depth_mm))
+    half_w = 0.5 * (p.shaft_width_mm + top * (p.plateau_width_mm - p.shaft_width_mm)
+                    + bottom * (p.distal_width_mm - p.shaft_width_mm))
+    half_d = 0.5 * (p.shaft_depth_mm + top * (p.plateau_depth_mm - p.shaft_depth_mm)
+                    + bottom * (p.distal_depth_mm - p.shaft_depth_mm))
     cy = -p.plateau_posterior_offset_mm * top**2  # the plateau sits posterior to the shaft
     dx, dy = x, y - cy
     theta = np.arctan2(dy, dx)
@@ -66,17 +68,21 @@ def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> n
     lateral_half = 0.25 * p.plateau_width_mm
     top = (
         L
-        - 3.0 * np.exp(-(((np.abs(x) - lateral_half) / (0.5 * lateral_half)) ** 2) - ((y - cy) / (0.25 * p.plateau_depth_mm)) ** 2)
+        - 3.0 * np.exp(-(((np.abs(x) - lateral_half) / (0.5 * lateral_half)) ** 2)
+                       - ((y - cy) / (0.25 * p.plateau_depth_mm)) ** 2)
         + 5.0 * np.exp(-((x / 5.0) ** 2) - ((y - cy) / 8.0) ** 2)
     )
     bottom_surface = 3.0 * np.exp(-((x / (0.25 * p.distal_width_mm)) ** 2) - ((y / (0.25 * p.distal_depth_mm)) ** 2))
     body = -_smooth_min(-body, -np.maximum(z - top, bottom_surface - z), 3.0)
     # Tibial tuberosity: an ellipsoid on the anterior proximal shaft.
     tz = L - 0.11 * L
-    tub = np.sqrt(((x - 0.1 * p.plateau_width_mm) / 14.0) ** 2 + ((y - (0.5 * p.shaft_depth_mm + 0.2 * p.tuberosity_height_mm)) / p.tuberosity_height_mm) ** 2 + ((z - tz) / 22.0) ** 2) - 1.0
+    tub = np.sqrt(((x - 0.1 * p.plateau_width_mm) / 14.0) ** 2
+                  + ((y - (0.5 * p.shaft_depth_mm + 0.2 * p.tuberosity_height_mm)) / p.tuberosity_height_mm) ** 2
+                  + ((z - tz) / 22.0) ** 2) - 1.0
     body = _smooth_min(body, tub * 10.0, 4.0)
     # Medial malleolus: medial (-x for a right tibia), reaching below the plafond.
-    mal = np.sqrt(((x + 0.5 * p.distal_width_mm - 7.0) / 8.0) ** 2 + ((y - 2.0) / 11.0) ** 2 + ((z - 4.0) / (p.malleolus_length_mm + 4.0)) ** 2) - 1.0
+    mal = np.sqrt(((x + 0.5 * p.distal_width_mm - 7.0) / 8.0) ** 2 + ((y - 2.0) / 11.0) ** 2
+                  + ((z - 4.0) / (p.malleolus_length_mm + 4.0)) ** 2) - 1.0
     body = _smooth_min(body, mal * 9.0, 4.0)
     return body
 

@@ -250,7 +250,8 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
         return float(np.linalg.norm(gap - (gap @ limb) * limb))
 
     def beside(a: _Body, b: _Body) -> bool:
-        return overlap(a, b) >= _BESIDE_OVERLAP and apart(a, b) <= _BESIDE_DISTANCE_SHARE * max(a.length_mm, b.length_mm)
+        return (overlap(a, b) >= _BESIDE_OVERLAP
+                and apart(a, b) <= _BESIDE_DISTANCE_SHARE * max(a.length_mm, b.length_mm))
 
     long = [b for b in bodies if b.length_mm >= _LONG_SHARE * longest]
     fibulae = {}
@@ -319,7 +320,7 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
     background, _ = ndimage.label(~mask)
     border = np.zeros(mask.shape, dtype=bool)
     for axis in range(mask.ndim):
-        index = [slice(None)] * mask.ndim
+        index: list[slice | int] = [slice(None)] * mask.ndim
         for end in (0, -1):
             index[axis] = end
             border[tuple(index)] = True

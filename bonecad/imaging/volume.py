@@ -131,10 +131,16 @@ def read_volume(path: str | Path, *, max_slice_gap_mm: float = 5.0) -> CTVolume:
 
 def _read_nifti(path: Path) -> CTVolume:
     import nibabel as nib
+    from nibabel.arrayproxy import ArrayProxy
+    from nibabel.spatialimages import SpatialImage
 
     try:
         image = nib.load(str(path))
+        if not isinstance(image, SpatialImage):
+            raise TypeError(f"{type(image).__name__} is not an image with an affine")
         proxy = image.dataobj
+        if not isinstance(proxy, ArrayProxy):
+            raise TypeError(f"the image data is held as {type(proxy).__name__}, not read from the file")
         # Unscaled stored values (a memory map for .nii), scaled slice by slice in float32.
         raw = np.squeeze(np.asanyarray(proxy.get_unscaled()))
         slope = float(proxy.slope) if np.isfinite(proxy.slope) and proxy.slope != 0 else 1.0
@@ -249,7 +255,7 @@ def _slice_geometry(file: Path, ds) -> _Slice:
         ) from exc
     if position.shape != (3,) or orientation.shape != (6,) or len(spacing) != 2 or min(spacing) <= 0:
         raise InputError("DICOM slice has malformed geometry attributes", file)
-    return _Slice(file, position, orientation[:3], orientation[3:], spacing, size)  # type: ignore[arg-type]
+    return _Slice(file, position, orientation[:3], orientation[3:], spacing, size)
 
 
 def _read_dicom_folder(folder: Path, max_gap_mm: float, wanted: Path | None = None) -> CTVolume:

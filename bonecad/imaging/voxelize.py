@@ -33,7 +33,8 @@ def occupancy(
     return total
 
 
-def _axis_occupancy(grid_vertices: np.ndarray, faces: np.ndarray, shape: tuple[int, int, int], ray_axis: int) -> np.ndarray:
+def _axis_occupancy(grid_vertices: np.ndarray, faces: np.ndarray, shape: tuple[int, int, int],
+                    ray_axis: int) -> np.ndarray:
     """Inside share of each voxel along rays parallel to world axis ``ray_axis`` (vertices in voxel units)."""
     nxyz = (shape[2], shape[1], shape[0])
     u_axis, v_axis = [a for a in range(3) if a != ray_axis]
@@ -78,7 +79,8 @@ def _axis_occupancy(grid_vertices: np.ndarray, faces: np.ndarray, shape: tuple[i
 
     p0 = tri[pair_tri, 0]
     n = normal[pair_tri]
-    crossing = p0[:, ray_axis] - (n[:, u_axis] * (qu - p0[:, u_axis]) + n[:, v_axis] * (qv - p0[:, v_axis])) / n[:, ray_axis]
+    crossing = p0[:, ray_axis] - (n[:, u_axis] * (qu - p0[:, u_axis])
+                                  + n[:, v_axis] * (qv - p0[:, v_axis])) / n[:, ray_axis]
     s = sign[pair_tri]
     # Voxel kc spans [kc - 0.5, kc + 0.5); it gets the share above the crossing,
     # every voxel beyond it the whole step.
@@ -88,7 +90,8 @@ def _axis_occupancy(grid_vertices: np.ndarray, faces: np.ndarray, shape: tuple[i
     kc[below], frac[below] = 0.0, 1.0
     n_ray = nxyz[ray_axis]
     keep = kc < n_ray
-    kc, frac, s, qu, qv = kc[keep].astype(np.int64), frac[keep], s[keep], qu[keep].astype(np.int64), qv[keep].astype(np.int64)
+    kc, frac, s = kc[keep].astype(np.int64), frac[keep], s[keep]
+    qu, qv = qu[keep].astype(np.int64), qv[keep].astype(np.int64)
 
     # Difference array in (ray, u, v) layout, one extra cell along the ray.
     dims = (n_ray + 1, nxyz[u_axis], nxyz[v_axis])

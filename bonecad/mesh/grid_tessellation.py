@@ -26,9 +26,12 @@ class GridTolerances(Protocol):
     """deflection_mm : chord sag aimed at; angular_deflection_rad : turn per segment; max_edge_mm : segment
     length; allowed_shortfall(exact_area_mm2) : relative area shortfall accepted per face."""
 
-    deflection_mm: float
-    angular_deflection_rad: float
-    max_edge_mm: float
+    @property
+    def deflection_mm(self) -> float: ...
+    @property
+    def angular_deflection_rad(self) -> float: ...
+    @property
+    def max_edge_mm(self) -> float: ...
 
     def allowed_shortfall(self, exact_area_mm2: np.ndarray) -> np.ndarray: ...
 
@@ -140,7 +143,12 @@ def _grid_pass(
     for i, (gu, gv) in enumerate(grids):
         by_size.setdefault((len(gu), len(gv)), []).append(i)
     faces_arr = np.asarray(faces, dtype=np.int64)
-    uvs, tris, node_face, tri_face, quads, quad_face = [], [], [], [], [], []
+    uvs: list[np.ndarray] = []
+    tris: list[np.ndarray] = []
+    node_faces: list[np.ndarray] = []
+    tri_faces: list[np.ndarray] = []
+    quad_list: list[np.ndarray] = []
+    quad_faces: list[np.ndarray] = []
     offset = 0
     for (nu, nv), members in by_size.items():
         count = len(members)
@@ -157,22 +165,22 @@ def _grid_pass(
         flip = reversed_faces[fids]
         tri[flip] = tri[flip][:, :, [0, 2, 1]]
         tris.append(tri.reshape(-1, 3))
-        node_face.append(np.repeat(fids, nu * nv))
-        tri_face.append(np.repeat(fids, len(pattern)))
+        node_faces.append(np.repeat(fids, nu * nv))
+        tri_faces.append(np.repeat(fids, len(pattern)))
         cells = (nu - 1) * (nv - 1)
         q0u = np.broadcast_to(gu[:, :-1, None], (count, nu - 1, nv - 1)).ravel()
         q1u = np.broadcast_to(gu[:, 1:, None], (count, nu - 1, nv - 1)).ravel()
         q0v = np.broadcast_to(gv[:, None, :-1], (count, nu - 1, nv - 1)).ravel()
         q1v = np.broadcast_to(gv[:, None, 1:], (count, nu - 1, nv - 1)).ravel()
-        quads.append(np.column_stack([q0u, q1u, q0v, q1v]))
-        quad_face.append(np.repeat(fids, cells))
+        quad_list.append(np.column_stack([q0u, q1u, q0v, q1v]))
+        quad_faces.append(np.repeat(fids, cells))
         offset += count * nu * nv
     uv = np.concatenate(uvs)
-    node_face = np.concatenate(node_face)
+    node_face = np.concatenate(node_faces)
     triangles = np.concatenate(tris)
-    quads = np.concatenate(quads)
-    quad_face = np.concatenate(quad_face)
-    triangle_face = np.concatenate(tri_face)
+    quads = np.concatenate(quad_list)
+    quad_face = np.concatenate(quad_faces)
+    triangle_face = np.concatenate(tri_faces)
     # exact area: 2x2 Gauss-Legendre on every grid cell
     g = 0.5 / np.sqrt(3.0)
     mid_u, half_u = 0.5 * (quads[:, 0] + quads[:, 1]), quads[:, 1] - quads[:, 0]
@@ -215,7 +223,7 @@ def grid_tessellation(
     last = np.full(count, -1)
     for b, batch in enumerate(batches):
         last[np.unique(batch[2])] = b
-    parts = [[] for _ in range(7)]
+    parts: list[list[np.ndarray]] = [[] for _ in range(7)]
     offset = 0
     for b, (uv, tri, nf, tf, s, su, sv) in enumerate(batches):
         keep_node = last[nf] == b

@@ -42,7 +42,8 @@ def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
-        raise InputError(f"cannot be read as a {path.suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})", path) from None
+        raise InputError(f"cannot be read as a {path.suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})",
+                         path) from None
     vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
     faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
     if len(faces) == 0 or len(vertices) < 4:
@@ -107,7 +108,8 @@ def _principal_extent(points: np.ndarray) -> tuple[np.ndarray, float, float]:
     return vt[0], float(np.ptp(along)), width
 
 
-def _detect_scale(length: float, width: float, units: Units, path: Path, length_range: list[float]) -> float:
+def _detect_scale(length: float, width: float, units: Units, path: Path | None,
+                  length_range: tuple[float, float]) -> float:
     """Scale to mm; in auto mode a non-mm mesh is an error naming the --units option."""
     if units != "auto":
         return UNIT_SCALE_TO_MM[units]

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from functools import cached_property
+from typing import overload
 
 import numpy as np
 
@@ -47,7 +48,12 @@ class TessellationSettings:
     max_edge_mm: float
     small_face_factor: float
 
-    def allowed_shortfall(self, exact_area_mm2: np.ndarray) -> np.ndarray:
+    @overload
+    def allowed_shortfall(self, exact_area_mm2: float) -> float: ...
+    @overload
+    def allowed_shortfall(self, exact_area_mm2: np.ndarray) -> np.ndarray: ...
+
+    def allowed_shortfall(self, exact_area_mm2: float | np.ndarray) -> float | np.ndarray:
         """Relative area shortfall accepted for faces of these exact areas: the coverage
         tolerance, or the chordal shortfall of a face curved on its own size (a 1 mm^2
         cap face next to an apex), whichever is larger. A 20 % partial cover is still
@@ -100,9 +106,16 @@ class Tessellation:
     def face_count(self) -> int:
         return len(self.faces)
 
+    @property
+    def packed_surfaces(self) -> SurfaceSet:
+        """``surface_set``, which ``__post_init__`` always fills."""
+        if self.surface_set is None:
+            raise ValueError("Tessellation.surface_set: not packed")
+        return self.surface_set
+
     @cached_property
     def chord_error_mm(self) -> np.ndarray:
-        return chord_errors(self.surface_set, self.vertices, self.uv, self.triangles, self.triangle_face,
+        return chord_errors(self.packed_surfaces, self.vertices, self.uv, self.triangles, self.triangle_face,
                             self.face_count)
 
     def chord_error_near(self, points: np.ndarray, distance_mm: np.ndarray) -> float:
@@ -125,7 +138,7 @@ class Tessellation:
         near = np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]))
         if len(near) == 0:
             return 0.0
-        chord = chord_errors(self.surface_set, self.vertices, self.uv, self.triangles[near],
+        chord = chord_errors(self.packed_surfaces, self.vertices, self.uv, self.triangles[near],
                              self.triangle_face[near], self.face_count)
         return float(chord.max())
 

@@ -122,7 +122,7 @@ class AngleMap:
     proximal_z: float
     proximal_centre_xy: np.ndarray
 
-    def centre(self, z: np.ndarray) -> np.ndarray:
+    def centre(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         share = np.clip((np.asarray(z) - self.distal_z) / (self.proximal_z - self.distal_z), 0.0, 1.0)
         return share[..., None] * self.proximal_centre_xy, share
 
@@ -131,8 +131,8 @@ class AngleMap:
         centre, share = self.centre(points[:, 2])
         rel = points[:, :2] - centre
         theta = np.arctan2(rel[:, 1], rel[:, 0])
-        share = float(np.mean(share))
-        knots = (1.0 - share) * self.distal + share * self.proximal
+        mean_share = float(np.mean(share))
+        knots = (1.0 - mean_share) * self.distal + mean_share * self.proximal
         n = len(knots)
         theta = knots[0] + np.mod(theta - knots[0], 2 * np.pi)
         return np.mod(np.interp(theta, np.append(knots, knots[0] + 2 * np.pi), np.arange(n + 1) / n), 1.0)

@@ -337,7 +337,8 @@ def quiet():
             printer.SetTraceLevel(level)
 
 
-def write_named_step(shape: TopoDS_Shape, path: str | Path, name: str, face_names: list[tuple[str, TopoDS_Face]]) -> Path:
+def write_named_step(shape: TopoDS_Shape, path: str | Path, name: str,
+                     face_names: list[tuple[str, TopoDS_Face]]) -> Path:
     """STEP AP214 in mm, atomically: the product and solid named ``name``, every face by its
     region (``ADVANCED_FACE('distal', ...)``, which STEP readers show as face names)."""
     from OCP.IFSelect import IFSelect_RetDone
@@ -373,7 +374,8 @@ def write_named_step(shape: TopoDS_Shape, path: str | Path, name: str, face_name
     return path
 
 
-def write_named_iges(shape: TopoDS_Shape, path: str | Path, name: str, face_names: list[tuple[str, TopoDS_Face]]) -> Path:
+def write_named_iges(shape: TopoDS_Shape, path: str | Path, name: str,
+                     face_names: list[tuple[str, TopoDS_Face]]) -> Path:
     """IGES 5.3 (B-rep faces, mm) with names, atomically."""
     return write_xcaf_iges(_xcaf_document(shape, name, face_names), path)
 

@@ -10,14 +10,14 @@ a file back (``read_step``), which keeps ~1.5 s of imports off every run.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Union
+from typing import Any
 
 import numpy as np
 
 from bonecad.errors import KernelError
 from bonecad.staging import staged_file
 
-Tree = tuple[str, Union[object, list]]  # (name, TopoDS_Shape) or (name, [Tree, ...])
+Tree = tuple[str, Any]  # (name, TopoDS_Shape) or (name, [Tree, ...]); Any: OCP's shapes are untyped
 
 
 def frame_entities(frame, plane_size_mm: float = 120.0) -> list[tuple[str, object]]:

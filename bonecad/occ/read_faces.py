@@ -83,7 +83,7 @@ def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
         (base.IsUPeriodic(), base.UPeriod if base.IsUPeriodic() else None, u0, u1),
         (base.IsVPeriodic(), base.VPeriod if base.IsVPeriodic() else None, v0, v1),
     ):
-        closed.append(bool(periodic and abs((hi - lo) - period()) <= 1e-9 * max(1.0, period())))
+        closed.append(bool(periodic and period is not None and abs((hi - lo) - period()) <= 1e-9 * max(1.0, period())))
     return (
         SplineSurface(
             bs.UDegree(), bs.VDegree(), knots_u, knots_v, poles, bounds, closed[0], closed[1]

@@ -90,11 +90,14 @@ class _Part:
     def concatenate(parts: list[_Part]) -> _Part:
         """One part of all ``parts``, in order, their triangles renumbered."""
         offsets = np.cumsum([0] + [len(part.uv) for part in parts[:-1]])
+
+        def joined(name: str) -> np.ndarray:
+            return np.concatenate([getattr(part, name) for part in parts])
+
         return _Part(
-            *(np.concatenate([getattr(part, name) for part in parts]) for name in ("vertices", "uv")),
+            joined("vertices"), joined("uv"),
             np.concatenate([part.triangles + offset for part, offset in zip(parts, offsets)]),
-            *(np.concatenate([getattr(part, name) for part in parts])
-              for name in ("node_face", "triangle_face", "su", "sv", "evaluated")),
+            joined("node_face"), joined("triangle_face"), joined("su"), joined("sv"), joined("evaluated"),
         )
 
 

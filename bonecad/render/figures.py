@@ -146,7 +146,8 @@ def _fill_pinholes(raster: Raster) -> Raster:
         return raster
     best = np.full(mask.shape, -np.inf)
     src = np.zeros(mask.shape + (2,), dtype=np.int64)
-    rows, cols = np.indices(mask.shape)
+    grid = np.indices(mask.shape)
+    rows, cols = grid[0], grid[1]
     for dy, dx in shifts:
         d = depth[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
         better = d > best
@@ -158,7 +159,7 @@ def _fill_pinholes(raster: Raster) -> Raster:
     out[0][r, c] = True
     for arr in out[1:]:
         arr[r, c] = arr[sr, sc]
-    return Raster(*out, raster.extent_mm)
+    return Raster(out[0], out[1], out[2], out[3], raster.extent_mm)
 
 
 def _view_bounds(vertices: np.ndarray, axes: np.ndarray, margin: float = 0.03):
@@ -228,7 +229,7 @@ def render_tessellation_normals(
     face = tess.triangle_face[samples.triangle]
     values = np.column_stack([face.astype(float), uv])
     rasters = [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
-    sset = tess.surface_set
+    sset = tess.packed_surfaces
     for raster, axes in zip(rasters, frames):
         rows, cols = np.nonzero(raster.mask)
         pix_face = raster.values[rows, cols, 0].astype(np.int64)

@@ -137,7 +137,8 @@ def _print_inspect(summary: dict) -> None:
     print(f"watertight  {'yes' if summary['watertight'] else 'no'}")
     print(f"side        {summary['side']} (from the anatomy: medial malleolus, tuberosity)")
     print(f"axis length {summary['mechanical_axis_length_mm']} mm (plateau centre to plafond centre)")
-    print(f"plateau     ellipse semi-axes {summary['plateau_semi_axes_mm'][0]} x {summary['plateau_semi_axes_mm'][1]} mm")
+    semi_axes = summary['plateau_semi_axes_mm']
+    print(f"plateau     ellipse semi-axes {semi_axes[0]} x {semi_axes[1]} mm")
     print("bodies")
     for b in summary["bodies"]:
         kept = "kept" if b["role"] == "tibia" else "dropped"
@@ -188,7 +189,8 @@ def _run(args: argparse.Namespace) -> None:
         else:
             _print_inspect(summary)
     elif args.command in ("frame", "curves", "reconstruct"):
-        until = {"frame": "frame", "curves": "curves", "reconstruct": "models"}[args.command]
+        stage: dict[str, pipeline.Until] = {"frame": "frame", "curves": "curves", "reconstruct": "models"}
+        until = stage[args.command]
         result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units)
         _print_result(result)
         print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")

@@ -38,7 +38,8 @@ import time
 import traceback
 from contextlib import ExitStack
 from multiprocessing.connection import Connection, wait
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
+from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ class Executor(Protocol):
 
     def __enter__(self) -> Executor: ...
 
-    def __exit__(self, *exc: object) -> None: ...
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None: ...
 
     def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Job: ...
 

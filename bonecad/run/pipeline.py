@@ -23,7 +23,8 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator, Literal, Mapping
+from typing import Literal
+from collections.abc import Iterator, Mapping
 
 import numpy as np
 

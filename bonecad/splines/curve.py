@@ -54,7 +54,7 @@ class BSplineCurve:
     def count(self) -> int:
         return int(len(self.control_points))
 
-    def transformed(self, matrix: np.ndarray, offset: np.ndarray) -> "BSplineCurve":
+    def transformed(self, matrix: np.ndarray, offset: np.ndarray) -> BSplineCurve:
         """The same curve under the affine map x -> x @ matrix + offset (exact for B-splines)."""
         return BSplineCurve(self.control_points @ matrix + offset, self.knots, self.degree, self.periodic)
 
@@ -88,7 +88,8 @@ def _fairness(count: int, periodic: bool) -> sparse.csr_matrix:
     """D^T D for the second differences of the control polygon (wrapping round when periodic)."""
     if periodic:
         eye = sparse.identity(count, format="csr")
-        diff = eye - 2 * sparse.csr_matrix(np.roll(np.eye(count), 1, axis=1)) + sparse.csr_matrix(np.roll(np.eye(count), 2, axis=1))
+        diff = (eye - 2 * sparse.csr_matrix(np.roll(np.eye(count), 1, axis=1))
+                + sparse.csr_matrix(np.roll(np.eye(count), 2, axis=1)))
     else:
         diff = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(count - 2, count))
     return (diff.T @ diff).tocsr()
@@ -215,8 +216,9 @@ def fit_curve(
     dropped = 0
     for round_ in range(3 if outlier_mm is not None else 1):
         u = centripetal_parameters(points, closed=periodic) if params is None else np.array(params, dtype=np.float64)
-        fit_knots = knots
-        if fit_knots is None:
+        if knots is not None:
+            fit_knots = knots
+        else:
             fit_knots = periodic_knots(count) if periodic else averaged_knots(u, count, degree)
         weights = np.ones(len(points))
         weights[pinned] = 1e8

@@ -31,7 +31,8 @@ def normal_equations(a, weights: np.ndarray, values: np.ndarray, fairness=None):
     return normal, wa.T @ values
 
 
-def solve_dense(matrix: np.ndarray, rhs: np.ndarray, *, max_condition: float | None = None, what: str = "") -> np.ndarray:
+def solve_dense(matrix: np.ndarray, rhs: np.ndarray, *, max_condition: float | None = None,
+                what: str = "") -> np.ndarray:
     """``matrix`` x = ``rhs`` (dense, square). With ``max_condition``, a system whose condition
     number exceeds it (or is not finite) raises FitError naming ``what``."""
     if max_condition is not None:

@@ -57,7 +57,8 @@ class BSplineSurface:
             knots = np.array(getattr(self, name), dtype=np.float64)
             expected = n + 1 if periodic else n + degree + 1
             if len(knots) != expected:
-                raise ValueError(f"{name} has {len(knots)} entries, expected {expected} for {n} poles of degree {degree}")
+                raise ValueError(f"{name} has {len(knots)} entries, expected {expected} "
+                                 f"for {n} poles of degree {degree}")
             if periodic and not np.allclose(knots, periodic_knots(n), atol=1e-12):
                 raise ValueError(f"{name}: a periodic direction needs uniform knots on [0, 1]")
             object.__setattr__(self, name, knots)
@@ -93,7 +94,7 @@ class BSplineSurface:
         bv = self._basis(np.array([float(v)]), "v")[0]
         return BSplineCurve(np.einsum("abk,b->ak", self.poles, bv), self.knots_u, self.degree_u, self.periodic_u)
 
-    def transformed(self, matrix: np.ndarray, offset: np.ndarray) -> "BSplineSurface":
+    def transformed(self, matrix: np.ndarray, offset: np.ndarray) -> BSplineSurface:
         """The same surface under x -> x @ matrix + offset (exact). A mirror (det < 0) flips the
         v direction so that S_u x S_v keeps pointing the same way relative to the solid (outward)."""
         poles = self.poles @ np.asarray(matrix, dtype=np.float64) + np.asarray(offset, dtype=np.float64)
@@ -101,7 +102,7 @@ class BSplineSurface:
                                self.periodic_u, self.periodic_v, self.region, self.reversed)
         return moved.reversed_v() if np.linalg.det(matrix) < 0 else moved
 
-    def reversed_v(self) -> "BSplineSurface":
+    def reversed_v(self) -> BSplineSurface:
         """The same point set with v -> 1 - v (normal flipped). Clamped v only."""
         if self.periodic_v:
             raise ValueError("reversed_v: only a clamped v direction can be reversed")

@@ -81,6 +81,8 @@ def build_cap(tube: TSpline, end: str, hole_points: np.ndarray, outward: np.ndar
     """
     lines, r0, deriv = _boundary_rows(tube, end)
     mesh = tube.mesh
+    if mesh.s_period is None:
+        raise ValueError("build_cap: the tube must be periodic in s")
     s_knots = mesh.s_value(lines)
     t_ring = mesh.t_range[0] if end == "distal" else mesh.t_range[1]
     ring = tube.evaluate(np.linspace(*mesh.s_range, 256, endpoint=False), np.full(256, t_ring)).points
@@ -140,13 +142,16 @@ def _match_ring_elements(cap: TSpline, tube: TSpline, end: str) -> TSpline:
     """Insert (exactly) the s-breaks of the tube's ring elements, so the cap's
     Bezier faces meet the tube's one to one along the ring."""
     ext = tube.extraction
+    period = tube.mesh.s_period
+    if period is None:
+        raise ValueError("the tube must be periodic in s")
     t_ring = tube.mesh.t_range[0] if end == "distal" else tube.mesh.t_range[1]
     col = 2 if end == "distal" else 3
     on_ring = ext.index_bounds[:, col] == (3 if end == "distal" else tube.mesh.shape[1] - 4)
     on_ring &= np.isclose(ext.t_bounds[:, 0 if end == "distal" else 1], t_ring)
-    breaks = np.unique(np.mod(ext.s_bounds[on_ring, 0], tube.mesh.s_period))
+    breaks = np.unique(np.mod(ext.s_bounds[on_ring, 0], period))
     have = cap.mesh.s_lines
-    new = [b for b in breaks if np.min(np.abs(have - b)) > 1e-9 * tube.mesh.s_period]
+    new = [b for b in breaks if np.min(np.abs(have - b)) > 1e-9 * period]
     if not new:
         return cap
     segs = [KnotSegment("s", float(b), 0.0, 1.0) for b in new]
@@ -164,12 +169,12 @@ def _measure(cap: TSpline, tube: TSpline, end: str, count: int = 720) -> tuple[t
     r_ring, r_pole = (1.0, 0.0) if end == "distal" else (0.0, 1.0)
     a = tube.evaluate(s, np.full(count, t_ring), order=1)
     b = cap.evaluate(s, np.full(count, r_ring), order=1)
-    na = _unit(np.cross(a.ds, a.dt))
-    nb = _unit(np.cross(b.ds, b.dt))
+    na = _unit(np.cross(*a.first()))
+    nb = _unit(np.cross(*b.first()))
     ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", na, nb), -1.0, 1.0)))
     eps = 1e-4
     near = cap.evaluate(s, np.full(count, abs(r_pole - eps)), order=1)
-    npole = _unit(np.cross(near.ds, near.dt))
+    npole = _unit(np.cross(*near.first()))
     mean = _unit(npole.mean(axis=0, keepdims=True))[0]
     spread = np.degrees(np.arccos(np.clip(npole @ mean, -1.0, 1.0))).max()
     return (float(ang.max()), float(ang.mean())), float(spread)

@@ -8,7 +8,8 @@ Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
    (:mod:`.skinning`);
 2. fit the T-spline to every mesh vertex outside the apex holes (area
    weights; on a coarse mesh its edge midpoints instead), with parameter
-   correction and error-driven local refinement (:mod:`.fit`), until the tolerances hold or the control-point budget is hit;
+   correction and error-driven local refinement (:mod:`.fit`), until the
+   tolerances hold or the control-point budget is hit;
 3. fit a tensor-product B-spline to the same points and tolerances by
    refining whole knot lines, for the control-point comparison;
 4. cap the apex holes (:mod:`.caps`), extract Bezier patches, merge each
@@ -33,7 +34,8 @@ from bonecad.settings import TSplineSettings
 from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
-from bonecad.splines.tspline.fit import FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm, voxel_step_mm
+from bonecad.splines.tspline.fit import (FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm,
+                                         voxel_step_mm)
 from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger(__name__)
@@ -183,7 +185,7 @@ def ring_constraints(
         e1 = np.array([1.0, 0.0, 0.0]) - axis[0] * axis
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(axis, e1)
-        angles = np.array([c.angle_deg % 360.0 for c in curves])
+        angles = np.array([c.angle % 360.0 for c in curves])
         heights = np.array([(c.curve(np.array([0.0]))[0] - origin) @ axis for c in curves])
         h = np.interp(theta, angles, heights, period=360.0)
         rad = np.radians(theta)

@@ -98,7 +98,7 @@ def parameterisation(contours: ContourSet) -> Parameterisation:
     radii = []
     for c in contours.shaft:
         pts = c.curve(np.linspace(0.0, 1.0, 64, endpoint=False))
-        centre = np.clip((c.level_mm - z_d) / (z_p - z_d), 0, 1) * loc[1, :2]
+        centre = np.clip((c.level - z_d) / (z_p - z_d), 0, 1) * loc[1, :2]
         radii.append(np.linalg.norm(pts[:, :2] - centre, axis=1).mean())
     l_d = float(np.mean([_arc_samples(c.curve, 8)[2] for c in contours.distal]))
     l_p = float(np.mean([_arc_samples(c.curve, 8)[2] for c in contours.proximal]))
@@ -112,7 +112,7 @@ def curve_data(contours: ContourSet, par: Parameterisation) -> CurveData:
     for c in contours.distal:
         p, share, _ = _arc_samples(c.curve, _OPEN_SAMPLES)  # share 0 at the apex hole
         pts.append(p)
-        ss.append(np.full(len(p), (c.angle_deg % 360.0) / 360.0 * par.s_period))
+        ss.append(np.full(len(p), (c.angle % 360.0) / 360.0 * par.s_period))
         tt.append(share * par.t_distal)
         reg.append(np.zeros(len(p), int))
     for c in contours.shaft:
@@ -121,12 +121,12 @@ def curve_data(contours: ContourSet, par: Parameterisation) -> CurveData:
         ang = np.mod(np.arctan2(p[:, 1] - centre[:, 1], p[:, 0] - centre[:, 0]), 2 * np.pi)
         pts.append(p)
         ss.append(ang / (2 * np.pi) * par.s_period)
-        tt.append(np.full(len(p), par.t_distal + (c.level_mm - par.z_distal)))
+        tt.append(np.full(len(p), par.t_distal + (c.level - par.z_distal)))
         reg.append(np.ones(len(p), int))
     for c in contours.proximal:
         p, share, _ = _arc_samples(c.curve, _OPEN_SAMPLES)  # share 0 at the apex hole
         pts.append(p)
-        ss.append(np.full(len(p), (c.angle_deg % 360.0) / 360.0 * par.s_period))
+        ss.append(np.full(len(p), (c.angle % 360.0) / 360.0 * par.s_period))
         tt.append(par.t_end - share * (par.t_end - par.t_proximal))
         reg.append(np.full(len(p), 2))
     return CurveData(np.vstack(pts), np.concatenate(ss), np.concatenate(tt), np.concatenate(reg))
@@ -157,7 +157,8 @@ def initial_mesh(par: Parameterisation, *, s_intervals: int, t_spacing_mm: float
     return mesh.with_edges(mesh.s_edges, t_edges)
 
 
-def skin(contours: ContourSet, par: Parameterisation, mesh: TMesh, *, fairness: float) -> tuple[TSpline, CurveData, np.ndarray]:
+def skin(contours: ContourSet, par: Parameterisation, mesh: TMesh, *,
+         fairness: float) -> tuple[TSpline, CurveData, np.ndarray]:
     """Least-squares skinning of the three curve sets on one T-mesh.
 
     Returns (T-spline, the curve data, distance of each curve point to the surface at its parameters, mm).

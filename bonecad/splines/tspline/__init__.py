@@ -3,7 +3,8 @@ refinement, Bezier extraction, JSON. Pure numpy/scipy; ``bonecad.occ.tspline``
 is the one module that converts to OpenCascade (import it explicitly).
 """
 from bonecad.splines.tspline.extraction import BezierExtraction, extract
-from bonecad.splines.tspline.refine import KnotSegment, Refinement, Removal, insert_segments, refine_elements, remove_segments
+from bonecad.splines.tspline.refine import (KnotSegment, Refinement, Removal, insert_segments, refine_elements,
+                                            remove_segments)
 from bonecad.splines.tspline.serialize import from_dict, load, save, to_dict
 from bonecad.splines.tspline.suitability import SuitabilityReport, TJunctions, check_suitability, t_junctions
 from bonecad.splines.tspline.tmesh import TMesh

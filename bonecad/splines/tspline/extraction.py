@@ -83,7 +83,7 @@ class BezierExtraction:
             raise ValueError(f"s and t: expected equal lengths, got {s.size} and {t.size}")
         t = _clamp(t, *mesh.t_range, "t")
         j = find_span(mesh.t_lines, t, END_LINES - 1)  # the end lines act as clamped knots
-        if mesh.periodic:
+        if mesh.s_period is not None:
             lo = mesh.s_lines[0]
             s = lo + np.mod(s - lo, mesh.s_period)
             i = np.clip(find_span(mesh.s_lines, s), 0, len(mesh.s_lines) - 1)
@@ -103,7 +103,8 @@ def _clamp(x: np.ndarray, lo: float, hi: float, name: str) -> np.ndarray:
     tol = 1e-9 * max(hi - lo, 1.0)
     bad = (x < lo - tol) | (x > hi + tol) | ~np.isfinite(x)
     if bad.any():
-        raise ValueError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], e.g. {x[bad][0]}")
+        raise ValueError(f"{name}: {int(bad.sum())} value(s) outside the parameter range [{lo}, {hi}], "
+                         f"e.g. {x[bad][0]}")
     return np.clip(x, lo, hi)
 
 

@@ -134,7 +134,7 @@ class FitResult:
 def _wrap_clamp(ts: TSpline, s: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mesh = ts.mesh
     lo, hi = mesh.s_range
-    if mesh.periodic:
+    if mesh.s_period is not None:
         s = lo + np.mod(s - lo, mesh.s_period)
     else:
         s = np.clip(s, lo, hi)
@@ -156,12 +156,13 @@ def project_points(
     r = cur.points - points
     dist2 = np.einsum("ij,ij->i", r, r)
     for it in range(iterations):
-        su, tv = cur.ds, cur.dt
+        su, tv = cur.first()
+        dss, dst, dtt = cur.second()
         g0 = np.einsum("ij,ij->i", su, r)
         g1 = np.einsum("ij,ij->i", tv, r)
-        a = np.einsum("ij,ij->i", su, su) + np.einsum("ij,ij->i", cur.dss, r)
-        b = np.einsum("ij,ij->i", su, tv) + np.einsum("ij,ij->i", cur.dst, r)
-        c = np.einsum("ij,ij->i", tv, tv) + np.einsum("ij,ij->i", cur.dtt, r)
+        a = np.einsum("ij,ij->i", su, su) + np.einsum("ij,ij->i", dss, r)
+        b = np.einsum("ij,ij->i", su, tv) + np.einsum("ij,ij->i", dst, r)
+        c = np.einsum("ij,ij->i", tv, tv) + np.einsum("ij,ij->i", dtt, r)
         det = a * c - b * b
         ok = (a > 0) & (det > 1e-12 * np.maximum(a * c, 1e-300))
         # Newton where the Hessian is positive definite, else a gradient step (Gauss-Newton diagonal)
@@ -414,7 +415,8 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     rms_met = np.sqrt(np.sum(weights * distance**2) / weights.sum()) <= tol.rms_mm
     # once the share and the RMS hold, only the points beyond the maximum ask for more
     if cum[-1] > 0 and (deficit > 0 or not rms_met):
-        fraction = tol.mark_fraction if deficit <= 0 else min(tol.mark_fraction, tol.mark_deficit_factor * deficit / cum[-1])
+        fraction = (tol.mark_fraction if deficit <= 0
+                    else min(tol.mark_fraction, tol.mark_deficit_factor * deficit / cum[-1]))
         k = int(np.searchsorted(cum, fraction * cum[-1])) + 1
         marked[order[:k]] = True
     marked |= worst > tol.max_deviation_mm
@@ -506,7 +508,7 @@ def _refine_globally(ts: TSpline, elements: np.ndarray, axes: np.ndarray) -> TSp
     s_mid = np.unique(np.round(ext.s_bounds[elements[axes[:, 0]]].mean(axis=1), 12))
     t_mid = np.unique(np.round(ext.t_bounds[elements[axes[:, 1]]].mean(axis=1), 12))
     segs = [KnotSegment("s", float(v), t0, t1) for v in s_mid]
-    if mesh.periodic:
+    if mesh.s_period is not None:
         segs += [KnotSegment("t", float(v), s0, s0 + mesh.s_period) for v in t_mid]
     else:
         segs += [KnotSegment("t", float(v), s0, s1) for v in t_mid]
@@ -516,7 +518,7 @@ def _refine_globally(ts: TSpline, elements: np.ndarray, axes: np.ndarray) -> TSp
 def _signed_distance(ts: TSpline, points: np.ndarray, s, t, distance: np.ndarray) -> np.ndarray:
     """(n,) distance of each point from the surface (mm), positive on the side the normal ds x dt points to."""
     sample = ts.evaluate(s, t, order=1)
-    side = np.einsum("ij,ij->i", points - sample.points, np.cross(sample.ds, sample.dt))
+    side = np.einsum("ij,ij->i", points - sample.points, np.cross(*sample.first()))
     return np.where(side < 0, -distance, distance)
 
 
@@ -577,7 +579,8 @@ def fit_adaptive(
             return FitResult(ts, s, t, dist, stats, history, True, "tolerances met")
         stalled = None if noise_mm is None else dist <= noise_mm
         if stalled is not None and _meets_up_to_noise(dist, w, stalled, tol):
-            stopped = (f"tolerances met up to the data's noise: {_share(w, stalled & (dist > tol.share_within[1])):.2%} "
+            beyond = _share(w, stalled & (dist > tol.share_within[1]))
+            stopped = (f"tolerances met up to the data's noise: {beyond:.2%} "
                        f"of the surface lies beyond {tol.share_within[1]} mm but within {tol.noise_factor} x the "
                        f"local noise; no point beyond {tol.max_deviation_mm} mm asks for more")
             break

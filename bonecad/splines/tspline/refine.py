@@ -27,7 +27,8 @@ new line crosses are touched, so the number of control points grows locally.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Literal
+from collections.abc import Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -413,8 +414,8 @@ def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float 
             raise ValueError(f"KnotSegment.axis: expected 's' or 't', got {seg.axis!r}")
         if not seg.hi > seg.lo:
             raise ValueError(f"KnotSegment: expected lo < hi, got lo={seg.lo}, hi={seg.hi}")
-        mesh, k, new = mesh.with_line(seg.axis, seg.value, tol)
-        if new:
+        mesh, k, is_new = mesh.with_line(seg.axis, seg.value, tol)
+        if is_new:
             m = s_map if seg.axis == "s" else t_map
             m[m >= k] += 1
     # each segment's line in the final grid (later insertions shift indices)
@@ -448,7 +449,7 @@ def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float 
     return Refinement(new, matrix, n_new - ts.n_control, requested)
 
 
-def refine_elements(ts: TSpline, elements: Sequence[int], axes: np.ndarray | None = None) -> Refinement:
+def refine_elements(ts: TSpline, elements: Sequence[int] | np.ndarray, axes: np.ndarray | None = None) -> Refinement:
     """Split Bezier elements at their parametric midlines (exact).
 
     axes : optional (n, 2) bool per element, [halve in s (insert its s-midline),
@@ -484,7 +485,7 @@ def _snap(lines: np.ndarray, lo: float, hi: float, tol: float) -> tuple[int, int
 
 def _snap_s(mesh: TMesh, lo: float, hi: float, tol: float) -> tuple[int, int]:
     """s-range to (unwrapped) s-line indices at or outside it."""
-    if not mesh.periodic:
+    if mesh.s_period is None:
         return _snap(mesh.s_lines, lo, hi, tol)
     s_n = mesh.shape[0]
     if hi - lo > mesh.s_period + tol:

@@ -160,10 +160,10 @@ class TMesh:
         """(S, T): number of s-lines and t-lines of the global grid."""
         return len(self.s_lines), len(self.t_lines)
 
-    def s_value(self, idx: np.ndarray) -> np.ndarray:
+    def s_value(self, idx: np.ndarray | int) -> np.ndarray:
         """s knot values of (possibly unwrapped) s-line indices."""
         idx = np.asarray(idx)
-        if not self.periodic:
+        if self.s_period is None:
             return self.s_lines[idx]
         n = len(self.s_lines)
         return self.s_lines[idx % n] + np.floor_divide(idx, n) * self.s_period
@@ -248,9 +248,11 @@ class TMesh:
         _check_lines(self.s_lines, "s_lines", periodic_span=self.s_period)
         n_s_seg = s_n if self.periodic else s_n - 1
         if self.s_edges.shape != (t_n, n_s_seg) or self.s_edges.dtype != bool:
-            raise ValueError(f"s_edges: expected bool ({t_n}, {n_s_seg}), got {self.s_edges.dtype} {self.s_edges.shape}")
+            raise ValueError(f"s_edges: expected bool ({t_n}, {n_s_seg}), "
+                             f"got {self.s_edges.dtype} {self.s_edges.shape}")
         if self.t_edges.shape != (s_n, t_n - 1) or self.t_edges.dtype != bool:
-            raise ValueError(f"t_edges: expected bool ({s_n}, {t_n - 1}), got {self.t_edges.dtype} {self.t_edges.shape}")
+            raise ValueError(f"t_edges: expected bool ({s_n}, {t_n - 1}), "
+                             f"got {self.t_edges.dtype} {self.t_edges.shape}")
         _check_strips(self.s_edges, self.t_edges, "t")
         if not self.periodic:
             _check_strips(self.t_edges, self.s_edges, "s")
@@ -276,7 +278,7 @@ class TMesh:
         if len(self.anchors) == 0:
             raise ValueError("invalid T-mesh: no control points")
         s_idx, _ = self.anchor_knots
-        if self.periodic:
+        if self.s_period is not None:
             span = self.s_value(s_idx[:, 4]) - self.s_value(s_idx[:, 0])
             if np.any(span > self.s_period * (1 + 1e-12)):
                 raise ValueError("invalid T-mesh: a blending function spans more than the s period")
@@ -292,7 +294,7 @@ class TMesh:
         """
         if axis == "s":
             lines, lo, hi = self.s_lines, *self.s_range
-            if self.periodic:
+            if self.s_period is not None:
                 value = lo + (value - lo) % self.s_period
         else:
             lines, lo, hi = self.t_lines, *self.t_range

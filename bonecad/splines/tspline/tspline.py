@@ -42,6 +42,18 @@ class SurfaceSample:
     dst: np.ndarray | None = None
     dtt: np.ndarray | None = None
 
+    def first(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ds, dt); ValueError if the sample was evaluated with order 0."""
+        if self.ds is None or self.dt is None:
+            raise ValueError("first derivatives: evaluate with order >= 1")
+        return self.ds, self.dt
+
+    def second(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(dss, dst, dtt); ValueError if the sample was evaluated with order < 2."""
+        if self.dss is None or self.dst is None or self.dtt is None:
+            raise ValueError("second derivatives: evaluate with order 2")
+        return self.dss, self.dst, self.dtt
+
 
 @dataclass(frozen=True, eq=False)
 class TSpline:
@@ -206,7 +218,7 @@ class TSpline:
                 val = np.einsum("nkl,nk,nl->n", coef, bu[a][rows], bv[b][rows]) * (hs**a * ht**b)[rows]
                 wb[(a, b)] = w * val
                 big_w[(a, b)] = np.bincount(rows, wb[(a, b)], minlength=len(elem))
-        r = {}
+        r: dict[tuple[int, int], np.ndarray] = {}
         for a in range(ds + 1):
             for b in range(dt + 1):
                 acc = wb[(a, b)].copy()
@@ -234,7 +246,7 @@ class TSpline:
         ks_r = np.tile(ks, (n, 1))
         kt_r = np.tile(kt, (n, 1))
         tt = np.repeat(t, m)
-        if mesh.periodic:
+        if mesh.s_period is not None:
             ss = ks_r[:, 0] + np.mod(np.repeat(s, m) - ks_r[:, 0], mesh.s_period)
         else:
             s0, s1 = mesh.s_range
@@ -252,7 +264,7 @@ class TSpline:
 def _rational_derivatives(hom: dict, order: int) -> dict:
     """Derivatives of x = X / W from those of homogeneous [X, W] (Leibniz rule)."""
     w = {k: v[:, 3:] for k, v in hom.items()}
-    out = {}
+    out: dict[tuple[int, int], np.ndarray] = {}
     for tot in range(order + 1):
         for a in range(tot, -1, -1):
             b = tot - a
