@@ -118,10 +118,13 @@ class _Child:
         self.name = getattr(fn, "__name__", "job")
         self._owner = owner
         self._receive, send = ctx.Pipe(duplex=False)
+        self._send = send
         self._process = ctx.Process(target=_child_main, args=(send, os.getpid(), fn, args, kwargs), daemon=True)
-        self._process.start()
-        send.close()
         self._message: tuple[bool, Any] | None = None
+
+    def start(self) -> None:
+        self._process.start()
+        self._send.close()
 
     def _take(self, wait: bool) -> tuple[bool, Any] | None:
         """The child's message (None when ``wait`` is False and it has sent none yet)."""
@@ -193,6 +196,7 @@ class Fork:
         self._stack = ExitStack()
         self._open = False
         self._waiting = False
+        self._forking = False
 
     @staticmethod
     def available() -> bool:
@@ -210,7 +214,9 @@ class Fork:
         return self
 
     def _on_child_failure(self, signum: int, frame: object) -> None:
-        if self._open and not self._waiting:  # while waiting, the failure is read from its pipe
+        # while waiting the failure is read from its pipe; while forking it would land in fork's
+        # own hooks, which ignore exceptions (the child signals again until it is stopped)
+        if self._open and not self._waiting and not self._forking:
             raise ChildFailed
 
     def wait_for(self, child: _Child) -> Any:
@@ -234,7 +240,12 @@ class Fork:
 
     def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> _Child:
         child = _Child(self, self._ctx, fn, args, kwargs)
-        self._children.append(child)
+        self._children.append(child)  # owned before it exists: whatever happens next, it is stopped
+        self._forking = True
+        try:
+            child.start()
+        finally:
+            self._forking = False
         log.debug("job %s started in process %d", child.name, child._process.pid)
         return child
 
