@@ -93,8 +93,13 @@ def body_roles(shapes: list[BodyShape], t: int, up: np.ndarray, settings: MeshSe
         if parallel and abs(height) < 0.5 * half and s.length > 0.5 * tibia.length:
             roles[i] = "fibula"
         elif height > end_zone:
-            compact = s.slenderness < settings.long_body_slenderness
-            roles[i] = "patella" if compact and off_axis >= settings.patella_min_offset_mm else "femur"
+            long_bone = s.slenderness >= settings.long_body_slenderness
+            if not long_bone and off_axis >= settings.patella_min_offset_mm:
+                roles[i] = "patella"
+            elif long_bone or s.volume >= settings.broken_piece_volume_share * tibia.volume:
+                roles[i] = "femur"  # long, or as large as a distal femur
+            else:
+                roles[i] = "broken piece"  # small, on the axis beyond the plateau: part of the tibia
         elif (parallel and s.volume >= settings.broken_piece_volume_share * tibia.volume
               and s.slenderness >= settings.long_body_slenderness):
             roles[i] = "broken piece"
