@@ -37,11 +37,20 @@ class UnitsSettings:
 
 @dataclass(frozen=True)
 class MeshSettings:
-    """Mesh intake: fragments and broken pieces (shares of the largest body's volume), hole filling (edges)."""
+    """Mesh intake: hole filling (edges); the bodies by anatomy: volume shares (of the tibia's volume),
+    slenderness (length / width), distances (mm), a share of the tibia's length; fused-bone detection."""
 
     fragment_volume_share: float
     broken_piece_volume_share: float
     max_hole_edges: int
+    long_body_slenderness: float
+    thin_body_slenderness: float
+    end_zone_share: float
+    patella_min_offset_mm: float
+    fused_second_loop_mm2: float
+    fused_loop_stretch_share: float
+    fused_neck_zone_share: float
+    fused_neck_ratio: float
 
 
 @dataclass(frozen=True)

@@ -76,6 +76,21 @@ def build_fused(source: Path = SOURCE, voxel_mm: float = VOXEL_MM) -> FusedMesh:
     )
 
 
+def fuse_meshes(meshes, voxel_mm: float = VOXEL_MM) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and faces (world mm) of the union of ``meshes`` (trimesh, disjoint) voxelised on one grid and
+    thresholded at half occupancy, as a CT threshold would: bones closer than about a voxel join."""
+    from skimage.measure import marching_cubes
+
+    from bonecad.imaging.voxelize import occupancy
+
+    points = np.vstack([m.vertices for m in meshes])
+    origin = points.min(axis=0) - 2.0 * voxel_mm
+    shape = tuple(int(n) for n in np.ceil((points.max(axis=0) - origin) / voxel_mm)[::-1] + 3)
+    occ = sum(occupancy(m.vertices, m.faces, origin, voxel_mm, shape) for m in meshes)
+    grid_vertices, faces, _, _ = marching_cubes((occ >= 0.5).astype(np.float32), 0.5, allow_degenerate=False)
+    return grid_vertices[:, ::-1].astype(np.float64) * voxel_mm + origin, faces.astype(np.int64)
+
+
 def write_fused(path: Path, fused: FusedMesh) -> Path:
     import trimesh
 

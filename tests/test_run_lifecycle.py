@@ -10,7 +10,7 @@ never hang and never leave processes behind.
 
 Requirements (issue 17): every error ends the run within seconds, exit 2 for
 bad input and 1 for an internal failure, one clear line, no output folder; the
-fused tibia-fibula mesh does so (or is reconstructed). SIGINT/SIGTERM/SIGKILL
+fused tibia-fibula mesh is refused so (exit 2 naming the fibula). SIGINT/SIGTERM/SIGKILL
 of the CLI leave no bonecad process running 5 s later and no staging folder
 after SIGINT/SIGTERM; a later run into the same --out removes one left by SIGKILL.
 """
@@ -201,10 +201,8 @@ def _config(tmp_path: Path, background: bool) -> list[str]:
 @pytest.mark.slow
 @pytest.mark.parametrize("background", [True, False], ids=["background_jobs", "no_background_jobs"])
 def test_fused_mesh_ends_with_one_line_and_no_output(fused_tibia_fibula, tmp_path, background):
-    """Today: with background jobs the run hangs (the frame-and-curves child raised, then waits at exit
-    for its proximal-curves child, which is blocked writing its result into a pipe nobody reads);
-    without, it fails at once: 'internal error: the 150 degree half-plane section does not run from the
-    apex to the region boundary (its ends meet the apex and the apex)'."""
+    """The mesh intake refuses it: exit 2, one line naming the fibula, no output (it used to end in an
+    internal error: 'the 150 degree half-plane section does not run from the apex to the region boundary')."""
     path, _ = fused_tibia_fibula
     out = tmp_path / "fused_out"
     run = Run(cli("reconstruct", path, "--out", out, "-q", *_config(tmp_path, background)), tmp_path)
@@ -223,13 +221,12 @@ def test_fused_mesh_ends_with_one_line_and_no_output(fused_tibia_fibula, tmp_pat
             if left:
                 problems.append(f"{len(left)} process(es) of the run still alive {REAP_S:.0f} s after it "
                                 f"ended: {describe(left)}")
-            if code == 0:  # the fused mesh reconstructed: acceptable too
-                if not (out / "report.json").is_file():
-                    problems.append(f"exit 0 after {elapsed:.1f} s but no report.json in {out}")
-            else:
-                problems += check_one_line_error(code, run.stderr())
-                if out.exists():
-                    problems.append(f"the output folder {out} exists after a failed run")
+            problems += check_one_line_error(code, run.stderr())
+            if code != 2 or "fused to its fibula" not in run.stderr():
+                problems.append(f"exit {code} after {elapsed:.1f} s with {run.stderr()[-800:]!r}; expected exit 2 "
+                                "naming the fibula")
+            if out.exists():
+                problems.append(f"the output folder {out} exists after a failed run")
             if staging_folders(out):
                 problems.append(f"staging folder(s) left: {staging_folders(out)}")
         assert not problems, "\n".join(problems)

@@ -15,7 +15,7 @@ class BodyInfo:
     volume_mm3: float
     length_mm: float
     centroid: np.ndarray  # (3,) mm, input coordinates
-    role: str  # "tibia", "fibula", "fragment", "broken piece"
+    role: str  # "tibia", "fibula", "femur", "patella", "talus", "foot bone", "fragment", "broken piece"
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from typing import Literal
 import numpy as np
 
 from bonecad.errors import InputError
+from bonecad.mesh.bodies import body_roles, body_shape, check_not_fused, choose_tibia, proximal_direction
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 from bonecad.settings import MeshSettings, UnitsSettings
 
@@ -138,10 +139,10 @@ def load_bone(
     settings: MeshSettings,
     plausible: UnitsSettings,
 ) -> BoneMesh:
-    """Read, clean and check a tibia mesh; keep the tibia body (the largest), report the others.
+    """Read, clean and check a tibia mesh; keep the tibia body (found by anatomy), report the others.
 
     Raises InputError (naming the file) for unreadable files, wrong units, a
-    tibia broken into pieces, or a bone that is not long enough to be whole.
+    tibia broken into pieces, or a tibia fused to a neighbouring bone.
     """
     vertices, faces = read_mesh_file(path)
     return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible)
@@ -165,41 +166,30 @@ def prepare_bone(
     if not bodies or abs(bodies[0].volume) <= 0:
         raise InputError("has no closed body with a volume", path)
 
-    tibia = bodies[0]
-    axis, length, width = _principal_extent(tibia.vertices)
+    # units from the largest body (a tibia or a femur: both 15-150 mm wide)
+    _, length, width = _principal_extent(bodies[0].vertices)
     scale = _detect_scale(length, width, units, path, plausible.tibia_length_mm)
-    tibia_volume = abs(tibia.volume)
-
-    infos: list[BodyInfo] = []
-    for index, body in enumerate(bodies):
-        body_axis, body_length, _ = _principal_extent(body.vertices)
-        volume = abs(body.volume)
-        share = volume / tibia_volume
-        if index == 0:
-            role = "tibia"
-        elif share < settings.fragment_volume_share:
-            role = "fragment"
-        else:
-            # A fibula lies beside the tibia, parallel to it; a broken piece of
-            # the tibia continues it along its axis (beyond its end).
-            offset = body.centroid - tibia.centroid
-            along = abs(offset @ axis)
-            parallel = abs(body_axis @ axis) > 0.9
-            if parallel and along < 0.5 * length and body_length > 0.5 * length:
-                role = "fibula"
-            elif share >= settings.broken_piece_volume_share or along > 0.4 * length:
-                role = "broken piece"
-            else:
-                role = "fragment"
-        infos.append(
-            BodyInfo(
-                triangles=int(len(body.faces)),
-                volume_mm3=float(volume * scale**3),
-                length_mm=float(body_length * scale),
-                centroid=np.asarray(body.centroid, dtype=np.float64) * scale,
-                role=role,
-            )
+    shapes = [body_shape(np.asarray(b.vertices) * scale, abs(b.volume) * scale**3, np.asarray(b.centroid) * scale)
+              for b in bodies]
+    length_range = (float(plausible.tibia_length_mm[0]), float(plausible.tibia_length_mm[1]))
+    t = choose_tibia(shapes, settings, length_range)
+    tibia = bodies[t]
+    tibia_vertices = np.asarray(tibia.vertices, dtype=np.float64) * scale
+    tibia_faces = np.asarray(tibia.faces, dtype=np.int64)
+    up = proximal_direction(tibia_vertices, tibia_faces, shapes[t].centroid, shapes[t].axis)
+    roles = body_roles(shapes, t, up, settings)
+    infos = [
+        BodyInfo(
+            triangles=int(len(body.faces)),
+            volume_mm3=shape.volume,
+            length_mm=shape.length,
+            centroid=shape.centroid,
+            role=role,
         )
+        for body, shape, role in zip(bodies, shapes, roles)
+    ]
+    order = np.argsort([role != "tibia" for role in roles], kind="stable")  # the tibia first, then by volume
+    infos = [infos[i] for i in order]
     broken = [i for i in infos if i.role == "broken piece"]
     if broken:
         sizes = ", ".join(f"{b.length_mm:.0f} mm / {b.volume_mm3 / 1000:.0f} cm3" for b in (infos[0], *broken))
@@ -208,15 +198,18 @@ def prepare_bone(
             "bonecad does not guess how to join them: segment the bone as one body",
             path,
         )
-    dropped = [i for i in infos[1:]]
+    check_not_fused(tibia_vertices, tibia_faces, settings, length_range, path)
+    dropped = infos[1:]
     if dropped:
-        repairs.append("dropped " + ", ".join(f"{i.role} ({i.triangles} triangles)" for i in dropped))
+        repairs.append("dropped " + ", ".join(
+            f"{i.role} ({i.triangles} triangles, {i.volume_mm3 / 1000:.1f} cm3, {i.length_mm:.0f} mm)"
+            for i in dropped))
     if scale != 1.0:
         repairs.append(f"scaled by {scale:g} to mm (--units {units})")
 
     return BoneMesh(
-        vertices=np.asarray(tibia.vertices, dtype=np.float64) * scale,
-        faces=np.asarray(tibia.faces, dtype=np.int64),
+        vertices=tibia_vertices,
+        faces=tibia_faces,
         source=str(source),
         units="mm",
         bodies=tuple(infos),
