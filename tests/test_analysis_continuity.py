@@ -157,13 +157,13 @@ def test_frame_must_be_a_rotation():
 
 @pytest.mark.parametrize("kind", ["rational sphere", "bicubic with a double knot"])
 def test_batched_second_derivatives_match_opencascade(kind):
-    """SurfaceSet.evaluate2 (the batched seam evaluation) against BRepLProp_SLProps, point by point."""
+    """SurfaceSet.evaluate to order 2 (the batched seam evaluation) against BRepLProp_SLProps, point by point."""
     from OCP.BRepAdaptor import BRepAdaptor_Surface
     from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
     from OCP.BRepLProp import BRepLProp_SLProps
     from OCP.BRepPrimAPI import BRepPrimAPI_MakeSphere
 
-    from bonecad.splines.evaluate import SurfaceSet
+    from bonecad.splines.surface import SurfaceSet
     from bonecad.occ.brep import faces
     from bonecad.occ.read_faces import face_spline_surface
 
@@ -177,7 +177,8 @@ def test_batched_second_derivatives_match_opencascade(kind):
     u0, u1, v0, v1 = surface.bounds
     u = rng.uniform(u0, u1, 40)
     v = rng.uniform(v0 + 0.02 * (v1 - v0), v1 - 0.02 * (v1 - v0), 40)  # away from the sphere's poles
-    got = SurfaceSet([surface]).evaluate2(np.zeros(40, dtype=np.int64), u, v)
+    sample = SurfaceSet([surface]).evaluate(np.zeros(40, dtype=np.int64), u, v, order=2)
+    got = sample.points, sample.du, sample.dv, sample.duu, sample.dvv, sample.duv
     props = BRepLProp_SLProps(BRepAdaptor_Surface(face), 2, 1e-9)
     for i in range(40):
         props.SetParameters(float(u[i]), float(v[i]))

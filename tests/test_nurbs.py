@@ -60,10 +60,10 @@ def test_surface_matches_opencascade_and_reversal_keeps_points(rng):
     surface = BSplineSurface(poles, periodic_knots(7), knots_v, periodic_u=True, region="test")
     geom = occ.to_geom_surface(surface)
     u, v = rng.random(50), rng.random(50)
-    ours = surface(u, v)
+    ours = surface.evaluate(u, v).points
     theirs = np.array([[p.X(), p.Y(), p.Z()] for p in (geom.Value(float(a), float(b)) for a, b in zip(u, v))])
     np.testing.assert_allclose(ours, theirs, atol=1e-10)
-    np.testing.assert_allclose(surface.reversed_v()(u, 1.0 - v), ours, atol=1e-10)
+    np.testing.assert_allclose(surface.reversed_v().evaluate(u, 1.0 - v).points, ours, atol=1e-10)
     assert geom.IsUPeriodic() and not geom.IsVPeriodic()
     assert all(geom.UMultiplicity(i) == 1 for i in range(1, geom.NbUKnots() + 1))  # no double knot at the seam
 
@@ -196,7 +196,8 @@ def test_left_tibia_gives_an_outward_solid(contours, phantom, ring_model):
     assert left.volume_mm3 == pytest.approx(ring_model.volume_mm3, rel=1e-6)
     # the mirror image of each surface point of the right model lies on the left model
     right, mirrored = ring_model.surface("shaft"), left.surface("shaft")
-    np.testing.assert_allclose(mirrored(0.3, 1.0 - 0.4), right(0.3, 0.4) @ mirror, atol=1e-9)
+    np.testing.assert_allclose(mirrored.evaluate(0.3, 1.0 - 0.4).points, right.evaluate(0.3, 0.4).points @ mirror,
+                               atol=1e-9)
 
 
 def test_unknown_apex_fill_is_refused(contours):

@@ -4,21 +4,16 @@ from __future__ import annotations
 import numpy as np
 
 from bonecad.splines.curve import BSplineCurve
-from bonecad.splines.evaluate import SplineSurface, SurfaceSet
+from bonecad.splines.surface import BSplineSurface, SurfaceSet
 from bonecad.splines.project import project_faces, project_to_curve
 
 
-def quarter_cylinder(radius: float = 10.0, height: float = 20.0) -> SplineSurface:
+def quarter_cylinder(radius: float = 10.0, height: float = 20.0) -> BSplineSurface:
     """The exact rational quarter cylinder x^2 + y^2 = r^2, x, y >= 0, 0 <= z <= height (u: angle, v: z)."""
-    w = np.sqrt(0.5)
-    arc = np.array([[radius, 0.0, 1.0], [radius * w, radius * w, w], [0.0, radius, 1.0]])  # (x w, y w, w)
-    poles = np.zeros((3, 2, 4))
-    for j, z in enumerate((0.0, height)):
-        poles[:, j, 0:2] = arc[:, 0:2]
-        poles[:, j, 2] = z * arc[:, 2]
-        poles[:, j, 3] = arc[:, 2]
-    return SplineSurface(2, 1, np.array([0, 0, 0, 1, 1, 1.0]), np.array([0, 0, 1, 1.0]), poles,
-                         np.array([0, 1, 0, 1.0]))
+    corner = np.array([[radius, 0.0], [radius, radius], [0.0, radius]])
+    poles = np.stack([np.column_stack([corner, np.full(3, z)]) for z in (0.0, height)], axis=1)  # (3, 2, 3)
+    weights = np.array([[1.0, 1.0], [np.sqrt(0.5)] * 2, [1.0, 1.0]])
+    return BSplineSurface(poles, np.array([0, 0, 0, 1, 1, 1.0]), np.array([0, 0, 1, 1.0]), 2, 1, weights=weights)
 
 
 def test_projection_onto_a_cylinder_finds_the_radial_foot_point():

@@ -246,7 +246,8 @@ def sample_shape(tess: Tessellation, count: int, *, seed: int = 0) -> tuple[np.n
         t = samples.triangle[sel]
         tri_uv = tess.uv[tess.triangles[t]]
         uv = np.einsum("nk,nkj->nj", samples.barycentric[sel], tri_uv)
-        s, su, sv = sset.evaluate(face[sel], uv[:, 0], uv[:, 1])
+        sample = sset.evaluate(face[sel], uv[:, 0], uv[:, 1], order=1)
+        s, su, sv = sample.points, sample.du, sample.dv
         e1, e2 = tri_uv[:, 1] - tri_uv[:, 0], tri_uv[:, 2] - tri_uv[:, 0]
         uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
         flat = tess.triangle_areas()[t]

@@ -1,7 +1,7 @@
 """Parameter-grid triangles of untrimmed spline faces, all faces in one batch, refined until
 each covers its exact area.
 
-Needs only a :class:`~bonecad.splines.evaluate.SurfaceSet` (faces by index) and
+Needs only a :class:`~bonecad.splines.surface.SurfaceSet` (faces by index) and
 the tolerances of :class:`GridTolerances`.
 """
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from bonecad.mesh.sampling import triangle_areas
-from bonecad.splines.evaluate import SurfaceSet
+from bonecad.splines.surface import SurfaceSet
 from bonecad.splines.knots import breakpoints
 
 #: samples per knot span and cross lines per face used to size a grid
@@ -96,7 +96,7 @@ def _grid_counts(
             grid_c = np.broadcast_to(cross[:, None, :, None], shape)
             uu, vv = (grid_a, grid_c) if direction == 0 else (grid_c, grid_a)
             fid = np.broadcast_to(fids[:, None, None, None], shape)
-            pts = sset.evaluate(fid.ravel(), uu.ravel(), vv.ravel())[0].reshape(*shape, 3)
+            pts = sset.evaluate(fid.ravel(), uu.ravel(), vv.ravel()).points.reshape(*shape, 3)
             d = np.diff(pts, axis=3)
             size = np.linalg.norm(d, axis=4)
             dn = d / np.maximum(size[..., None], 1e-300)
@@ -134,6 +134,8 @@ def _grid_pass(
     breaks = []
     for f in faces:
         s = sset.surfaces[f]
+        if s is None:
+            raise ValueError(f"face {f} has no spline surface to grid")
         u0, u1, v0, v1 = s.bounds
         breaks.append((breakpoints(s.knots_u, u0, u1), breakpoints(s.knots_v, v0, v1)))
     counts_u, counts_v = _grid_counts(sset, faces, breaks, tolerances, factor)
@@ -187,8 +189,8 @@ def _grid_pass(
     mid_v, half_v = 0.5 * (quads[:, 2] + quads[:, 3]), quads[:, 3] - quads[:, 2]
     gu = np.concatenate([mid_u - g * half_u, mid_u + g * half_u, mid_u - g * half_u, mid_u + g * half_u])
     gv = np.concatenate([mid_v - g * half_v, mid_v - g * half_v, mid_v + g * half_v, mid_v + g * half_v])
-    _, su, sv = sset.evaluate(np.tile(quad_face, 4), gu, gv)
-    jac = np.linalg.norm(np.cross(su, sv), axis=1) * np.tile(0.25 * half_u * half_v, 4)
+    gauss = sset.evaluate(np.tile(quad_face, 4), gu, gv, order=1)
+    jac = np.linalg.norm(np.cross(gauss.du, gauss.dv), axis=1) * np.tile(0.25 * half_u * half_v, 4)
     area = np.bincount(np.tile(quad_face, 4), weights=jac, minlength=len(sset.surfaces))
     return uv, triangles, node_face, triangle_face, area
 
@@ -209,7 +211,8 @@ def grid_tessellation(
     area = np.zeros(count)
     for attempt in range(4):
         uv, tri, nf, tf, batch_area = _grid_pass(sset, todo.tolist(), reversed_faces, tolerances, factor[todo])
-        s, su, sv = sset.evaluate(nf, uv[:, 0], uv[:, 1])
+        nodes = sset.evaluate(nf, uv[:, 0], uv[:, 1], order=1)
+        s, su, sv = nodes.points, nodes.du, nodes.dv
         batches.append((uv, tri, nf, tf, s, su, sv))
         area[todo] = batch_area[todo]
         mesh = np.bincount(tf, weights=triangle_areas(s, tri), minlength=count)[todo]

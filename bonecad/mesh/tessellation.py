@@ -13,7 +13,7 @@ from typing import overload
 import numpy as np
 
 from bonecad.mesh.sampling import triangle_areas
-from bonecad.splines.evaluate import SplineSurface, SurfaceSet
+from bonecad.splines.surface import BSplineSurface, SurfaceSet
 from bonecad.splines.project import project_faces
 
 log = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ class Tessellation:
         the triangles
     node_face, triangle_face : (n,), (m,) int, face index of each node / triangle
     face_area_exact_mm2, face_area_mesh_mm2 : (F,) float
-    surfaces : one SplineSurface per face, or None where the face could not be
+    surfaces : one BSplineSurface per face, or None where the face could not be
         converted (distances on it stay tessellation-based)
     reversed_faces : (F,) bool, face orientation is REVERSED (flip S_u x S_v)
     chord_error_mm : (F,) float, measured largest distance between triangles
@@ -90,7 +90,7 @@ class Tessellation:
     triangle_face: np.ndarray
     face_area_exact_mm2: np.ndarray
     face_area_mesh_mm2: np.ndarray
-    surfaces: tuple[SplineSurface | None, ...]
+    surfaces: tuple[BSplineSurface | None, ...]
     reversed_faces: np.ndarray
     faces: tuple  # TopoDS_Face, in the order of the face index
     surface_set: SurfaceSet | None = None  # the surfaces packed for batched evaluation
@@ -178,7 +178,7 @@ def chord_errors(sset: SurfaceSet, vertices, uv, triangles, triangle_face, face_
     pts = np.einsum("mwk,mkj->mwj", bary, t).reshape(-1, 3)
     start = np.einsum("mwk,mkj->mwj", bary, uv[triangles]).reshape(-1, 2)
     face = np.repeat(triangle_face, 5)
-    bound = np.linalg.norm(pts - sset.evaluate(face, start[:, 0], start[:, 1])[0], axis=1)
+    bound = np.linalg.norm(pts - sset.evaluate(face, start[:, 0], start[:, 1]).points, axis=1)
 
     def exact(sel):
         proj = project_faces(sset, face[sel], pts[sel], start[sel])

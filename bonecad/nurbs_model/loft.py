@@ -28,6 +28,7 @@ import numpy as np
 from bonecad.splines.curve import BSplineCurve, densified, fit_curve
 from bonecad.contours.curves import ContourCurve, ContourSet
 from bonecad.errors import FitError
+from bonecad.splines.basis import design_matrix
 from bonecad.splines.knots import periodic_knots
 from bonecad.splines.project import project_to_curve
 from bonecad.splines.surface import BSplineSurface, interpolate_clamped, interpolate_periodic
@@ -171,6 +172,16 @@ def refit_section(
     return curve, float(distance.max()), float(np.sqrt(np.mean(distance**2)))
 
 
+def iso_u_curve(surface: BSplineSurface, v: float) -> BSplineCurve:
+    """The curve u -> S(u, v) of a polynomial surface (exact: its poles are the v-blend of the pole rows)."""
+    if surface.rational:
+        raise ValueError("iso_u_curve: the iso-curve of a rational surface is rational; BSplineCurve is not")
+    bv = design_matrix(np.array([float(v)]), surface.knots_v, surface.degree_v, surface.periodic_v,
+                       surface.shape[1]).toarray()[0]
+    return BSplineCurve(np.einsum("abk,b->ak", surface.poles, bv), surface.knots_u, surface.degree_u,
+                        surface.periodic_u)
+
+
 def skin_end(curves: list[BSplineCurve], region: str) -> BSplineSurface:
     """Periodic-in-u skin through the compatible curves, curve j at u = j / n (v as the curves run:
     apex -> boundary). Uniform parameters keep the circulant system well posed: interpolating at
@@ -250,7 +261,7 @@ def bone_surfaces(contours: ContourSet) -> BoneSurfaces:
         np.stack([c.control_points[-1] for c in proximal_curves]),
     )
     middle = [refit_section(c, mapping) for c in contours.shaft[1:-1]]
-    distal_boundary, proximal_boundary = distal.iso_u_curve(1.0), proximal.iso_u_curve(0.0)
+    distal_boundary, proximal_boundary = iso_u_curve(distal, 1.0), iso_u_curve(proximal, 0.0)
     shaft = loft_shaft(distal_boundary, [m[0] for m in middle], proximal_boundary)
     shaft_report = RefitReport(
         region="shaft",
@@ -260,7 +271,7 @@ def bone_surfaces(contours: ContourSet) -> BoneSurfaces:
         dropped_points=0,
     )
 
-    distal_ring, proximal_ring = distal.iso_u_curve(0.0), proximal.iso_u_curve(1.0)
+    distal_ring, proximal_ring = iso_u_curve(distal, 0.0), iso_u_curve(proximal, 1.0)
     local = contours.local_axis_bone
     return BoneSurfaces(
         distal=distal,

@@ -97,7 +97,8 @@ class NurbsModel(ShapePickling):
 
 def _boundary_gap(a: BSplineSurface, va: float, b: BSplineSurface, vb: float, samples: int = 560) -> float:
     u = np.linspace(0.0, 1.0, samples, endpoint=False)
-    return float(np.linalg.norm(a(u, np.full_like(u, va)) - b(u, np.full_like(u, vb)), axis=1).max())
+    gap = a.evaluate(u, np.full_like(u, va)).points - b.evaluate(u, np.full_like(u, vb)).points
+    return float(np.linalg.norm(gap, axis=1).max())
 
 
 def build_nurbs(contours: ContourSet, *, settings: NurbsSettings) -> NurbsModel:

@@ -22,12 +22,12 @@ from bonecad.errors import KernelError
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.tessellation import TessellationSettings
 from bonecad.occ.read_faces import native_to_spline_uv
-from bonecad.splines.evaluate import SplineSurface, evaluate
+from bonecad.splines.surface import BSplineSurface
 
 log = logging.getLogger(__name__)
 
 
-def brepmesh_face(face, index: int, surface: SplineSurface | None, native: bool, is_reversed: bool,
+def brepmesh_face(face, index: int, surface: BSplineSurface | None, native: bool, is_reversed: bool,
                   settings: TessellationSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """BRepMesh triangles of one (trimmed or analytic) face: nodes, uv on ``surface``, triangles, exact area."""
     mesher = BRepMesh_IncrementalMesh(face, settings.deflection_mm, False, settings.angular_deflection_rad, True)
@@ -90,7 +90,7 @@ def _bisect_long_edges(nodes, uv, tri, surface, max_edge_mm: float):
         c = tri[split, (k + 2) % 3]
         mid_uv = 0.5 * (uv[a] + uv[b])
         if surface is not None:
-            mid = evaluate(surface, mid_uv[:, 0], mid_uv[:, 1])[0]
+            mid = surface.evaluate(mid_uv[:, 0], mid_uv[:, 1]).points
         else:
             mid = 0.5 * (nodes[a] + nodes[b])
         new = len(nodes) + np.arange(len(split))

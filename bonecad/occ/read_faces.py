@@ -1,5 +1,6 @@
 """OpenCascade faces read into numpy: each face's surface as a clamped
-:class:`~bonecad.splines.evaluate.SplineSurface`, and whether a face covers its
+:class:`~bonecad.splines.surface.BSplineSurface` (rational, clamped, with the face's
+parameter bounds), and whether a face covers its
 whole parameter rectangle (then it can be gridded in parameters).
 """
 from __future__ import annotations
@@ -16,14 +17,14 @@ from OCP.GeomConvert import GeomConvert
 from OCP.Standard import Standard_Failure
 
 from bonecad.occ.brep import edges, read_array1, wires
-from bonecad.splines.evaluate import SplineSurface, SurfaceSet
+from bonecad.splines.surface import BSplineSurface, SurfaceSet
 from bonecad.splines.project import project_faces
 
 log = logging.getLogger(__name__)
 
 
-def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
-    """The face's surface as a clamped SplineSurface over the face's parameter range.
+def face_spline_surface(face) -> tuple[BSplineSurface | None, bool]:
+    """The face's surface as a clamped BSplineSurface over the face's parameter range.
 
     Returns ``(surface, native)``: ``native`` is True when the face already lies on a
     Geom_BSplineSurface/Geom_BezierSurface (same parameterisation as the face), False
@@ -58,13 +59,15 @@ def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
     knots_u = read_array1(bs.UKnotSequence())
     knots_v = read_array1(bs.VKnotSequence())
     nu, nv = bs.NbUPoles(), bs.NbVPoles()
-    poles = np.empty((nu, nv, 4))
+    poles = np.empty((nu, nv, 3))
     rational = bs.IsURational() or bs.IsVRational()
+    weights = np.ones((nu, nv)) if rational else None
     for i in range(1, nu + 1):
         for j in range(1, nv + 1):
             p = bs.Pole(i, j)
-            w = bs.Weight(i, j) if rational else 1.0
-            poles[i - 1, j - 1] = (w * p.X(), w * p.Y(), w * p.Z(), w)
+            poles[i - 1, j - 1] = (p.X(), p.Y(), p.Z())
+            if weights is not None:
+                weights[i - 1, j - 1] = bs.Weight(i, j)
     if native:
         bounds = np.array([u0, u1, v0, v1])
     else:
@@ -85,14 +88,13 @@ def face_spline_surface(face) -> tuple[SplineSurface | None, bool]:
     ):
         closed.append(bool(periodic and period is not None and abs((hi - lo) - period()) <= 1e-9 * max(1.0, period())))
     return (
-        SplineSurface(
-            bs.UDegree(), bs.VDegree(), knots_u, knots_v, poles, bounds, closed[0], closed[1]
-        ),
+        BSplineSurface(poles, knots_u, knots_v, bs.UDegree(), bs.VDegree(), weights=weights, bounds=bounds,
+                       closed_u=closed[0], closed_v=closed[1]),
         native,
     )
 
 
-def native_to_spline_uv(face, surface: SplineSurface, uv: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+def native_to_spline_uv(face, surface: BSplineSurface, uv: np.ndarray, nodes: np.ndarray) -> np.ndarray:
     """Parameters on a converted surface for nodes given in the face's own parameters.
 
     The conversion keeps the parameter ranges but not the parameterisation (rational
@@ -110,7 +112,7 @@ def native_to_spline_uv(face, surface: SplineSurface, uv: np.ndarray, nodes: np.
     return project_faces(SurfaceSet([surface]), np.zeros(len(nodes), dtype=np.int64), nodes, start).uv
 
 
-def is_natural(face, surface: SplineSurface) -> bool:
+def is_natural(face, surface: BSplineSurface) -> bool:
     """True when ``face`` is its surface's whole parameter rectangle ``surface.bounds``.
 
     Rigorous test on the boundary: one wire, and every edge's p-curve is a

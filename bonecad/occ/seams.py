@@ -26,7 +26,7 @@ from OCP.gp import gp_Pnt2d, gp_Vec2d
 
 from bonecad.occ.brep import edges, face_is_reversed, nonempty_faces, read_array1
 from bonecad.occ.read_faces import face_spline_surface
-from bonecad.splines.evaluate import SurfaceSet
+from bonecad.splines.surface import SurfaceSet
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ def sample_seams(shape, *, samples: int, tessellation=None) -> SeamSamples:
 
     Degenerate edges and seams of one periodic face are skipped (the latter's
     continuity is the face's own: see :func:`face_knots`). Spline faces are
-    evaluated in one batch (``SurfaceSet.evaluate2``), others by OpenCascade;
+    evaluated in one batch (``SurfaceSet.evaluate``, order 2), others by OpenCascade;
     ``tessellation``, a :class:`~bonecad.mesh.tessellation.Tessellation` of
     ``shape``, lends its surfaces (else they are read from the faces).
     """
@@ -171,9 +171,9 @@ def _evaluate(faces: list, face_of: np.ndarray, uv: np.ndarray, tessellation) ->
     derivs = np.empty((len(face_of), 5, 3))
     fast = batched[face_of]
     if fast.any():
-        s, su, sv, suu, svv, suv = sset.evaluate2(face_of[fast], uv[fast, 0], uv[fast, 1])
-        point[fast] = s
-        derivs[fast] = np.stack([su, sv, suu, svv, suv], axis=1)
+        sample = sset.evaluate(face_of[fast], uv[fast, 0], uv[fast, 1], order=2)
+        point[fast] = sample.points
+        derivs[fast] = np.stack([sample.du, sample.dv, sample.duu, sample.dvv, sample.duv], axis=1)
     for k in np.unique(face_of[~fast]):
         sel = np.flatnonzero((face_of == k) & ~fast)
         point[sel], derivs[sel] = _face_props(faces[k], uv[sel])

@@ -18,7 +18,7 @@ from OCP.TopoDS import TopoDS_Face, TopoDS_Shape
 
 from bonecad.splines.curve import BSplineCurve
 from bonecad.errors import FitError, KernelError
-from bonecad.occ.brep import array1, edges, pole_grid, read_array1
+from bonecad.occ.brep import array1, edges, pole_grid, read_array1, real_grid
 from bonecad.splines.knots import multiplicities
 from bonecad.splines.surface import BSplineSurface
 
@@ -30,13 +30,16 @@ def _knots_and_mults(knots: np.ndarray, periodic: bool) -> tuple[list[float], li
 
 
 def to_geom_surface(surface: BSplineSurface) -> Geom_BSplineSurface:
-    """An exact Geom_BSplineSurface of ``surface`` (periodic directions stay periodic, single knots)."""
+    """An exact Geom_BSplineSurface of ``surface`` (periodic directions stay periodic, single knots;
+    weights kept; the whole knot domain, whatever ``surface.bounds``)."""
     poles = pole_grid(surface.poles)
+    weights = () if surface.weights is None else (real_grid(surface.weights),)
     uk, um = _knots_and_mults(surface.knots_u, surface.periodic_u)
     vk, vm = _knots_and_mults(surface.knots_v, surface.periodic_v)
     try:
         return Geom_BSplineSurface(
             poles,
+            *weights,
             array1(uk, TColStd_Array1OfReal),
             array1(vk, TColStd_Array1OfReal),
             array1(um, TColStd_Array1OfInteger),

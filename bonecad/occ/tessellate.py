@@ -20,7 +20,7 @@ from bonecad.mesh.tessellation import Tessellation, TessellationSettings
 from bonecad.occ.brep import face_is_reversed, nonempty_faces
 from bonecad.occ.brepmesh import brepmesh_face
 from bonecad.occ.read_faces import face_spline_surface, is_natural
-from bonecad.splines.evaluate import SplineSurface, SurfaceSet
+from bonecad.splines.surface import BSplineSurface, SurfaceSet
 from bonecad.mesh.grid_tessellation import grid_tessellation
 
 log = logging.getLogger(__name__)
@@ -101,7 +101,7 @@ class _Part:
         )
 
 
-def _read_faces(faces: list) -> tuple[list[SplineSurface | None], np.ndarray, np.ndarray]:
+def _read_faces(faces: list) -> tuple[list[BSplineSurface | None], np.ndarray, np.ndarray]:
     """Each face's spline surface (None where conversion failed), and (F,) bool masks: native (on its
     own B-spline/Bezier surface), natural (native and its whole parameter rectangle)."""
     surfaces, natives, natural = [], [], []
@@ -143,7 +143,8 @@ def _exact_normals(sset: SurfaceSet, part: _Part, reversed_faces: np.ndarray) ->
         todo = ~part.evaluated[has]
         if todo.any():
             rest = has[todo]
-            _, su[todo], sv[todo] = sset.evaluate(part.node_face[rest], part.uv[rest, 0], part.uv[rest, 1])
+            sample = sset.evaluate(part.node_face[rest], part.uv[rest, 0], part.uv[rest, 1], order=1)
+            su[todo], sv[todo] = sample.du, sample.dv
         n = np.cross(su, sv)
         size = np.linalg.norm(n, axis=1, keepdims=True)
         good = size[:, 0] > 1e-10 * np.linalg.norm(su, axis=1) * np.linalg.norm(sv, axis=1)

@@ -235,8 +235,9 @@ def render_tessellation_normals(
         pix_face = raster.values[rows, cols, 0].astype(np.int64)
         has = np.flatnonzero(sset.group[pix_face] >= 0)
         f = pix_face[has]
-        _, su, sv = sset.evaluate(f, raster.values[rows[has], cols[has], 1], raster.values[rows[has], cols[has], 2])
-        n = np.cross(su, sv)
+        sample = sset.evaluate(f, raster.values[rows[has], cols[has], 1], raster.values[rows[has], cols[has], 2],
+                               order=1)
+        n = np.cross(sample.du, sample.dv)
         size = np.linalg.norm(n, axis=1, keepdims=True)
         good = size[:, 0] > 1e-12
         n = np.where(tess.reversed_faces[f][:, None], -n, n) / np.maximum(size, 1e-300)

@@ -4,7 +4,7 @@
   parameters clamped or wrapped), from given parameters or from the nearest of
   dense samples (KD-tree);
 - :func:`project_faces`: Gauss-Newton onto the rational surfaces of a
-  :class:`~bonecad.splines.evaluate.SurfaceSet`, per-point stopping on the
+  :class:`~bonecad.splines.surface.SurfaceSet`, per-point stopping on the
   step length, clamped to each face's bounds or wrapped round a closed direction.
 
 The T-spline fit's damped full Newton (``tspline.fit.project_points``) keeps its
@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 if TYPE_CHECKING:
-    from bonecad.splines.evaluate import SurfaceSet
+    from bonecad.splines.surface import SurfaceSet
 
 
 def project_to_curve(curve, points: np.ndarray, u: np.ndarray | None = None, *, iterations: int = 4,
@@ -100,7 +100,8 @@ def project_faces(
             if len(active) == 0:
                 break
             cur = uv[active]
-            s, su, sv = surfaces.evaluate(face[active], cur[:, 0], cur[:, 1])
+            sample = surfaces.evaluate(face[active], cur[:, 0], cur[:, 1], order=1)
+            s, su, sv = sample.points, sample.du, sample.dv
             r = points[active] - s
             a = np.einsum("ij,ij->i", su, su)
             b = np.einsum("ij,ij->i", su, sv)
@@ -129,8 +130,9 @@ def project_faces(
     n = np.empty((len(points), 3))
     for lo in range(0, len(points), chunk):
         sl = slice(lo, lo + chunk)
-        s[sl], su, sv = surfaces.evaluate(face[sl], uv[sl, 0], uv[sl, 1])
-        n[sl] = np.cross(su, sv)
+        sample = surfaces.evaluate(face[sl], uv[sl, 0], uv[sl, 1], order=1)
+        s[sl] = sample.points
+        n[sl] = np.cross(sample.du, sample.dv)
     norm = np.linalg.norm(n, axis=1, keepdims=True)
     n = n / np.where(norm > 0, norm, 1.0)
     r = points - s
