@@ -51,11 +51,11 @@ def test_cap_pole_is_one_tangent_plane_facing_out(mirrored, kink):
         ring = ts.evaluate(s, np.full(len(s), t_ring), order=1)
         radial = ring.points - ring.points.mean(axis=0)
         radial[:, 2] = 0.0
-        tube_sense = np.sign(np.mean(np.einsum("ij,ij->i", _unit(np.cross(ring.ds, ring.dt)), _unit(radial))))
+        tube_sense = np.sign(np.mean(np.einsum("ij,ij->i", _unit(np.cross(ring.du, ring.dv)), _unit(radial))))
         # the cap's normals near the pole all face the same way as the tube's: outward there
         for r in (abs(r_pole - 1e-3), abs(r_pole - 0.05), abs(r_pole - 0.3)):
             near = cap.tspline.evaluate(s, np.full(len(s), r), order=1)
-            facing = np.einsum("ij,j->i", _unit(np.cross(near.ds, near.dt)), outward) * tube_sense
+            facing = np.einsum("ij,j->i", _unit(np.cross(near.du, near.dv)), outward) * tube_sense
             assert facing.min() > 0.5, (end, r, facing.min())
         # and the patch meets the tube on the ring
         edge = cap.tspline.evaluate(s, np.full(len(s), r_ring)).points

@@ -84,7 +84,7 @@ def test_projection_finds_the_closest_point():
     sample = ts.evaluate(s0, t0, order=1)
     r = probe - sample.points
     inside = (t0 > 1e-6) & (t0 < LENGTH - 1e-6)
-    cos_s = np.abs(np.einsum("ij,ij->i", r, sample.ds)) / (np.linalg.norm(sample.ds, axis=1) * np.maximum(d0, 1e-12))
+    cos_s = np.abs(np.einsum("ij,ij->i", r, sample.du)) / (np.linalg.norm(sample.du, axis=1) * np.maximum(d0, 1e-12))
     assert np.percentile(cos_s[inside & (d0 > 1e-3)], 99) < 1e-4
     # ... and no grid sample is closer than the projected point
     gs, gt = np.meshgrid(np.linspace(0, PERIOD, 400), np.linspace(0, LENGTH, 200), indexing="ij")
@@ -166,7 +166,7 @@ def test_fairness_blocks_are_the_exact_thin_plate_energy():
     ss = (ext.s_bounds[:, :1, None] + g[None, :, None] * hs[:, None, None] + 0 * g[None, None, :]).ravel()
     tt = (ext.t_bounds[:, :1, None] + 0 * g[None, :, None] + g[None, None, :] * ht[:, None, None]).ravel()
     d = ts.evaluate(ss, tt, order=2)
-    dens = (np.sum(d.dss**2, 1) + 2 * np.sum(d.dst**2, 1) + np.sum(d.dtt**2, 1)).reshape(-1, 6, 6)
+    dens = (np.sum(d.duu**2, 1) + 2 * np.sum(d.duv**2, 1) + np.sum(d.dvv**2, 1)).reshape(-1, 6, 6)
     reference = np.einsum("eij,i,j,e->", dens, gw, gw, hs * ht)
     assert energy == pytest.approx(reference, rel=1e-9)
 

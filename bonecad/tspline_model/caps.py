@@ -169,12 +169,12 @@ def _measure(cap: TSpline, tube: TSpline, end: str, count: int = 720) -> tuple[t
     r_ring, r_pole = (1.0, 0.0) if end == "distal" else (0.0, 1.0)
     a = tube.evaluate(s, np.full(count, t_ring), order=1)
     b = cap.evaluate(s, np.full(count, r_ring), order=1)
-    na = _unit(np.cross(*a.first()))
-    nb = _unit(np.cross(*b.first()))
+    na = _unit(np.cross(a.du, a.dv))
+    nb = _unit(np.cross(b.du, b.dv))
     ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", na, nb), -1.0, 1.0)))
     eps = 1e-4
     near = cap.evaluate(s, np.full(count, abs(r_pole - eps)), order=1)
-    npole = _unit(np.cross(*near.first()))
+    npole = _unit(np.cross(near.du, near.dv))
     mean = _unit(npole.mean(axis=0, keepdims=True))[0]
     spread = np.degrees(np.arccos(np.clip(npole @ mean, -1.0, 1.0))).max()
     return (float(ang.max()), float(ang.mean())), float(spread)

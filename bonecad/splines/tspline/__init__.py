@@ -8,7 +8,7 @@ from bonecad.splines.tspline.refine import (KnotSegment, Refinement, Removal, in
 from bonecad.splines.tspline.serialize import from_dict, load, save, to_dict
 from bonecad.splines.tspline.suitability import SuitabilityReport, TJunctions, check_suitability, t_junctions
 from bonecad.splines.tspline.tmesh import TMesh
-from bonecad.splines.tspline.tspline import SurfaceSample, TSpline
+from bonecad.splines.tspline.tspline import TSpline
 
 __all__ = [
     "BezierExtraction",
@@ -16,7 +16,6 @@ __all__ = [
     "Refinement",
     "Removal",
     "SuitabilityReport",
-    "SurfaceSample",
     "TJunctions",
     "TMesh",
     "TSpline",

@@ -156,8 +156,8 @@ def project_points(
     r = cur.points - points
     dist2 = np.einsum("ij,ij->i", r, r)
     for it in range(iterations):
-        su, tv = cur.first()
-        dss, dst, dtt = cur.second()
+        su, tv = cur.du, cur.dv
+        dss, dst, dtt = cur.duu, cur.duv, cur.dvv
         g0 = np.einsum("ij,ij->i", su, r)
         g1 = np.einsum("ij,ij->i", tv, r)
         a = np.einsum("ij,ij->i", su, su) + np.einsum("ij,ij->i", dss, r)
@@ -518,7 +518,7 @@ def _refine_globally(ts: TSpline, elements: np.ndarray, axes: np.ndarray) -> TSp
 def _signed_distance(ts: TSpline, points: np.ndarray, s, t, distance: np.ndarray) -> np.ndarray:
     """(n,) distance of each point from the surface (mm), positive on the side the normal ds x dt points to."""
     sample = ts.evaluate(s, t, order=1)
-    side = np.einsum("ij,ij->i", points - sample.points, np.cross(*sample.first()))
+    side = np.einsum("ij,ij->i", points - sample.points, np.cross(sample.du, sample.dv))
     return np.where(side < 0, -distance, distance)
 
 

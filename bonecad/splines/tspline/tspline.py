@@ -20,39 +20,12 @@ import scipy.sparse as sp
 
 from bonecad.splines.basis import bernstein3
 from bonecad.splines.tspline.basis import bspline5, knot_span
+from bonecad.splines.surface import SurfaceSample
 from bonecad.splines.tspline.extraction import BezierExtraction, extract
 from bonecad.splines.tspline.tmesh import TMesh
 
 #: Points evaluated per batch: their gathered Bezier patches (4 MB) stay in cache.
 _BATCH = 8192
-
-
-@dataclass(frozen=True)
-class SurfaceSample:
-    """Surface points and partial derivatives at n parameter points.
-
-    points : (n, 3) mm. ds, dt : (n, 3) mm per unit parameter, or None when
-    not asked for; dss, dst, dtt : (n, 3) second derivatives, or None.
-    """
-
-    points: np.ndarray
-    ds: np.ndarray | None = None
-    dt: np.ndarray | None = None
-    dss: np.ndarray | None = None
-    dst: np.ndarray | None = None
-    dtt: np.ndarray | None = None
-
-    def first(self) -> tuple[np.ndarray, np.ndarray]:
-        """(ds, dt); ValueError if the sample was evaluated with order 0."""
-        if self.ds is None or self.dt is None:
-            raise ValueError("first derivatives: evaluate with order >= 1")
-        return self.ds, self.dt
-
-    def second(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(dss, dst, dtt); ValueError if the sample was evaluated with order < 2."""
-        if self.dss is None or self.dst is None or self.dtt is None:
-            raise ValueError("second derivatives: evaluate with order 2")
-        return self.dss, self.dst, self.dtt
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,7 +130,8 @@ class TSpline:
     def evaluate(self, s, t, *, order: int = 0) -> SurfaceSample:
         """Surface points (and derivatives up to ``order`` <= 2) at (s, t).
 
-        s, t : (n,) float parameters. Uses the Bezier patches; vectorised.
+        s, t : (n,) float parameters (the sample's u, v: ``du`` is the s-derivative). Uses the Bezier
+        patches; vectorised.
         """
         if order not in (0, 1, 2):
             raise ValueError(f"order: expected 0, 1 or 2, got {order!r}")
@@ -186,8 +160,8 @@ class TSpline:
         if order == 0:
             return SurfaceSample(d[(0, 0)])
         if order == 1:
-            return SurfaceSample(d[(0, 0)], d[(1, 0)], d[(0, 1)])
-        return SurfaceSample(d[(0, 0)], d[(1, 0)], d[(0, 1)], d[(2, 0)], d[(1, 1)], d[(0, 2)])
+            return SurfaceSample(d[(0, 0)], (d[(1, 0)], d[(0, 1)]))
+        return SurfaceSample(d[(0, 0)], (d[(1, 0)], d[(0, 1)], d[(2, 0)], d[(1, 1)], d[(0, 2)]))
 
     def basis_matrix(self, s, t, *, ds: int = 0, dt: int = 0) -> sp.csr_matrix:
         """Rational basis functions R_A (or a partial derivative) at points.
