@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import bonecad
-from bonecad.analysis import shape_deviation
+from bonecad.analysis.deviation import shape_deviation
 from bonecad.analysis.model import tessellation_settings
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.contours.curves import contour_curves

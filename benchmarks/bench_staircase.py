@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import bonecad
-from bonecad.analysis import shape_deviation
+from bonecad.analysis.deviation import shape_deviation
 from bonecad.analysis.deviation import sample_surface
 from bonecad.analysis.model import tessellation_settings
 from bonecad.analysis.statistics import settings_band_edges, share_within

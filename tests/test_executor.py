@@ -133,3 +133,18 @@ def test_children_die_with_a_killed_parent(tmp_path):
 
 def test_in_process_when_fork_is_not_wanted():
     assert isinstance(executor_for(False), InProcess)
+
+
+@needs_fork
+def test_a_shielded_block_is_not_interrupted_and_the_failure_follows_it():
+    """Imports of C extensions must not be interrupted (an exception inside leaves them broken)."""
+    finished = False
+    started = time.perf_counter()
+    with pytest.raises(InputError, match="no bone"):
+        with Fork() as ex:
+            ex.submit(_fails, "/data/ct.nii")
+            with ex.shielded():
+                time.sleep(1.0)  # the child fails and signals meanwhile
+                finished = True
+            time.sleep(30.0)
+    assert finished and time.perf_counter() - started < 3.0

@@ -138,7 +138,7 @@ def test_patch_caps_are_tangent_to_their_neighbours(patch_model):
 
 
 def test_deviation_from_the_phantom_mesh(ring_model, phantom):
-    from bonecad.analysis import shape_deviation
+    from bonecad.analysis.deviation import shape_deviation
 
     # 0.1 mm chords are enough: every sample is refined on the exact surface (checked below)
     tess = tessellate(ring_model.shape, replace(TESSELLATION, deflection_mm=0.1, max_edge_mm=2.0))

@@ -34,24 +34,11 @@ def _busy(*args, **kwargs):
     raise AssertionError("the run went on while a background job had failed")
 
 
-def _end_curves(fail_region, busy_region):
-    original = pipeline.end_curves
-
-    def patched(bone, frame, region, **kwargs):
-        if region == fail_region:
-            _fails()
-        if region == busy_region:
-            _busy()
-        return original(bone, frame, region, **kwargs)
-
-    return patched
-
-
 # (what fails in a background job, what keeps this process busy meanwhile)
 CASES = {
     "frame": {"anatomical_frame": _fails},  # beside the imports of OpenCascade and matplotlib
-    "proximal curves": {"end_curves": _end_curves("proximal", "distal")},
-    "mesh noise": {"mesh_noise": _fails, "shaft_curves": _busy},
+    "contour curves": {"contour_curves": _fails},  # the same job, after the frame
+    "mesh noise": {"mesh_noise": _fails, "curve_files_and_nurbs": _busy},
     "curve files and NURBS": {"curve_files_and_nurbs": _fails, "build_tspline_model": _busy},
     "zebra and continuity": {"zebra_and_continuity": _fails, "model_deviation": _busy},
     "colour map": {"render.deviation_map_png": _fails, "render.histogram_png": _busy},

@@ -74,7 +74,7 @@ def test_solid_is_closed_valid_outward_and_close_to_the_mesh(model, phantom):
     from OCP.GProp import GProp_GProps
     from OCP.TopAbs import TopAbs_SOLID
 
-    from bonecad.analysis import shape_deviation
+    from bonecad.analysis.deviation import shape_deviation
     from bonecad.occ.brep import is_valid
 
     shape = model.shape

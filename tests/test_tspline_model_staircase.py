@@ -53,7 +53,7 @@ def test_staircase_is_the_binary_mask_surface(truth, staircase):
 
 def test_fit_to_the_staircase_recovers_the_bone(truth, staircase):
     import bonecad
-    from bonecad.analysis import shape_deviation
+    from bonecad.analysis.deviation import shape_deviation
     from bonecad.contours.curves import contour_curves
     from bonecad.tspline_model import build_tspline_model
 

@@ -19,11 +19,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from bonecad.occ.brep import faces, names_in_order
-from bonecad.occ.seams import FaceKnots, SeamSamples, face_knots, sample_seams
+
+if TYPE_CHECKING:  # OpenCascade is imported when a shape is analysed, not with the package
+    from bonecad.occ.seams import FaceKnots, SeamSamples
 
 log = logging.getLogger(__name__)
 
@@ -163,6 +165,9 @@ def seam_continuity(
     lends its spline surfaces (:func:`bonecad.occ.seams.sample_seams`).
     face_names : (name, TopoDS_Face) of every face, as the model stage names them.
     """
+    from bonecad.occ.brep import faces, names_in_order
+    from bonecad.occ.seams import sample_seams
+
     seams = sample_seams(shape, samples=samples, tessellation=tessellation)
     names = None if face_names is None else tuple(names_in_order(faces(shape), face_names))
     return classify_seams(seams, tolerances, names)
@@ -208,6 +213,8 @@ def _classify(gap: float, angle: float, jump: float, tol: ContinuityTolerances) 
 
 def knot_continuity(shape) -> list[KnotContinuity]:
     """Continuity inside each face of ``shape`` from its knot multiplicities (module doc)."""
+    from bonecad.occ.seams import face_knots
+
     return [_knot_continuity(index, knots) for index, knots in enumerate(face_knots(shape))]
 
 

@@ -19,7 +19,6 @@ from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.analysis.continuity import (ContinuityTolerances, KnotContinuity, SeamContinuity, knot_continuity,
                                          seam_continuity)
 from bonecad.mesh.tessellation import Tessellation, TessellationSettings
-from bonecad.occ.tessellate import tessellate
 from bonecad.settings import AnalysisSettings
 
 log = logging.getLogger(__name__)
@@ -77,6 +76,8 @@ def continuity_tolerances(settings: AnalysisSettings) -> ContinuityTolerances:
 
 def tessellate_model(shape, settings: AnalysisSettings) -> Tessellation:
     """The model's tessellation (scanner mm), shared by the deviation, the continuity and the figures."""
+    from bonecad.occ.tessellate import tessellate
+
     return tessellate(shape, tessellation_settings(settings))
 
 

@@ -36,10 +36,10 @@ import signal
 import threading
 import time
 import traceback
-from contextlib import ExitStack
+from contextlib import AbstractContextManager, ExitStack, contextmanager, nullcontext
 from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +67,11 @@ class Executor(Protocol):
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None: ...
 
     def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Job: ...
+
+    def shielded(self) -> AbstractContextManager[None]:
+        """A block that a failing job must not interrupt (e.g. imports of C extensions, which an
+        exception raised inside leaves broken); its failure is raised after the block."""
+        ...
 
 
 class _Done:
@@ -101,6 +106,9 @@ class InProcess:
 
     def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> _Done:
         return _Done(fn, args, kwargs)
+
+    def shielded(self) -> AbstractContextManager[None]:
+        return nullcontext()
 
 
 class ChildFailed(Exception):
@@ -197,6 +205,7 @@ class Fork:
         self._open = False
         self._waiting = False
         self._forking = False
+        self._shielded = 0
 
     @staticmethod
     def available() -> bool:
@@ -216,8 +225,17 @@ class Fork:
     def _on_child_failure(self, signum: int, frame: object) -> None:
         # while waiting the failure is read from its pipe; while forking it would land in fork's
         # own hooks, which ignore exceptions (the child signals again until it is stopped)
-        if self._open and not self._waiting and not self._forking:
+        if self._open and not self._waiting and not self._forking and not self._shielded:
             raise ChildFailed
+
+    @contextmanager
+    def shielded(self) -> Iterator[None]:
+        """No failure is raised inside this block (a failed child signals again until it is stopped)."""
+        self._shielded += 1
+        try:
+            yield
+        finally:
+            self._shielded -= 1
 
     def wait_for(self, child: _Child) -> Any:
         """``child``'s result; if another child reports a failure first, that failure is raised."""

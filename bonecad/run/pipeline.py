@@ -5,12 +5,11 @@ input (CT volume | mesh) -> BoneMesh -> AnatomicalFrame -> ContourSet
 
 Stages are pure functions of their inputs and settings; this module alone
 decides what runs where. With background jobs (``[pipeline] background_jobs``,
-``bonecad.run.executor.Fork``) the second core takes, in turn: the frame
-(while this process imports OpenCascade and matplotlib once, for every later
-child to inherit), the proximal contour curves and the mesh's local noise
-(while the distal and shaft curves are fitted here), the curve files and the
-whole NURBS branch (model, analysis, figures, files) while the T-spline model
-is built here, and the T-spline model's zebra figure, continuity and colour
+``bonecad.run.executor.Fork``) the second core takes, in turn: the frame and
+the contour curves (while this process imports OpenCascade and matplotlib
+once, for every later child to inherit), the mesh's local noise and the curve
+files and the whole NURBS branch (model, analysis, figures, files) while the
+T-spline model is built here, and the T-spline model's zebra figure, continuity and colour
 map while its deviation is measured here. Every file goes through
 ``staged_output``: a failure, SIGINT or SIGTERM leaves no partial output.
 """
@@ -30,7 +29,7 @@ import numpy as np
 
 from bonecad.analysis.model import ModelReport, model_continuity, model_deviation, tessellate_model
 from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
-from bonecad.contours.curves import ContourSet, assemble_contours, bone_coordinates, end_curves, shaft_curves
+from bonecad.contours.curves import ContourSet, bone_coordinates, contour_curves
 from bonecad.errors import InputError
 from bonecad.export.registry import export
 from bonecad.export.documents import FrameDocument
@@ -175,35 +174,47 @@ def reconstruct_bone(
     ex = executor if executor is not None else executor_for(settings.pipeline.background_jobs)
     out_dir = Path(out_dir)
     with staged_output(out_dir) as stage_dir, ex:
-        frame_job = ex.submit(anatomical_frame, bone, settings=settings.anatomy, plausible=settings.units)
+        front = ex.submit(frame_and_contours, bone, settings, until != "frame")
         if until != "frame":
-            with timings.stage("OpenCascade and matplotlib imports"):
+            with timings.stage("OpenCascade and matplotlib imports"), ex.shielded():
                 for module in ("bonecad.occ.brep", "bonecad.render.figures", "bonecad.export.cad"):
                     importlib.import_module(module)
-        with timings.stage("anatomical frame"):
-            frame = frame_job.result()
+        with timings.stage("waiting for the frame and the contour curves"):
+            frame, contours, front_timings = front.result()
+        timings.update(front_timings)
         frame_doc = FrameDocument(bone.summary(), frame)
         if until == "frame":
             with timings.stage("reference entities to STEP"):
                 export("frame", frame_doc, stage_dir, only=["step"])
             result = Reconstruction(bone=bone, frame=frame)
         else:
-            result = _curves_and_models(bone, frame, stage_dir, settings, models, timings, ex)
+            assert contours is not None
+            result = _curves_and_models(bone, frame, contours, stage_dir, settings, models, timings, ex)
         # no timings (report.json and the log have them): the same input gives the same frame.json
         export("frame", frame_doc, stage_dir, only=["json"])
         files = tuple(sorted(p.name for p in stage_dir.iterdir()))
     return replace(result, out_dir=out_dir, files=files, timings_s=dict(timings.seconds), wall_s=timings.wall_s())
 
 
-def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, stage_dir: Path, settings: Settings,
-                       models: tuple[str, ...], timings: Timings, ex: Executor) -> Reconstruction:
-    """Contour curves, their files, then the models with their analysis, figures and files, and the report."""
+def frame_and_contours(bone: BoneMesh, settings: Settings, with_contours: bool
+                       ) -> tuple[AnatomicalFrame, ContourSet | None, dict[str, float]]:
+    """The anatomical frame, then (``with_contours``) the contour curves: the job that runs beside this
+    process's imports. Returns them with their stage times (s)."""
+    timings = Timings()
+    with timings.stage("anatomical frame"):
+        frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+    if not with_contours:
+        return frame, None, timings.seconds
     with timings.stage("contour curves"):
-        proximal = ex.submit(end_curves, bone, frame, "proximal", settings=settings.curves)
-        noise = ex.submit(mesh_noise, bone, frame, settings) if "tspline" in models else None
-        distal = end_curves(bone, frame, "distal", settings=settings.curves)
-        shaft = shaft_curves(bone, frame, settings=settings.curves)
-        contours = assemble_contours(frame, distal, shaft, proximal.result())
+        contours = contour_curves(bone, frame, settings=settings.curves)
+    return frame, contours, timings.seconds
+
+
+def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: ContourSet, stage_dir: Path,
+                       settings: Settings, models: tuple[str, ...], timings: Timings, ex: Executor
+                       ) -> Reconstruction:
+    """The contour curves' files, then the models with their analysis, figures and files, and the report."""
+    noise = ex.submit(mesh_noise, bone, frame, settings) if "tspline" in models else None
     for name, summary in contours.summary().items():
         log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name, summary["curves"],
                  summary["worst_max_deviation_mm"], summary["tolerance_mm"], summary["within_tolerance"])
