@@ -30,7 +30,6 @@ from bonecad.splines.curve import BSplineCurve, fit_curve
 
 REGIONS = ("distal", "shaft", "proximal")
 EndRegion = Literal["distal", "proximal"]
-Region = Literal["distal", "shaft", "proximal"]
 
 
 @dataclass(frozen=True)

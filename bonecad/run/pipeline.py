@@ -6,8 +6,8 @@ input (CT volume | mesh) -> BoneMesh -> AnatomicalFrame -> ContourSet
 Stages are pure functions of their inputs and settings; this module alone
 decides what runs where. With background jobs (``[pipeline] background_jobs``,
 ``bonecad.run.executor.Fork``) the second core takes, in turn: the frame and
-the contour curves, in two jobs that each find the frame (while this process
-imports OpenCascade and matplotlib once, for every later child to inherit), the mesh's local noise and the curve
+the contour curves (while this process imports OpenCascade and matplotlib
+once, for every later child to inherit), the mesh's local noise and the curve
 files and the whole NURBS branch (model, analysis, figures, files) while the
 T-spline model is built here, and the T-spline model's zebra figure, continuity and colour
 map while its deviation is measured here. Every file goes through
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-import pickle
 import tempfile
 import time
 from contextlib import contextmanager
@@ -30,8 +29,7 @@ import numpy as np
 
 from bonecad.analysis.model import ModelReport, model_continuity, model_deviation, tessellate_model
 from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
-from bonecad.contours.curves import (ContourSet, Region, assemble_contours, bone_coordinates, end_curves,
-                                     shaft_curves)
+from bonecad.contours.curves import ContourSet, bone_coordinates, contour_curves
 from bonecad.errors import InputError
 from bonecad.export.registry import export
 from bonecad.export.documents import FrameDocument
@@ -176,29 +174,21 @@ def reconstruct_bone(
     ex = executor if executor is not None else executor_for(settings.pipeline.background_jobs)
     out_dir = Path(out_dir)
     with staged_output(out_dir) as stage_dir, ex:
+        front = ex.submit(frame_and_contours, bone, settings, until != "frame")
+        if until != "frame":
+            with timings.stage("OpenCascade and matplotlib imports"), ex.shielded():
+                for module in ("bonecad.occ.brep", "bonecad.render.figures", "bonecad.export.cad"):
+                    importlib.import_module(module)
+        with timings.stage("waiting for the frame and the contour curves"):
+            frame, contours, front_timings = front.result()
+        timings.update(front_timings)
+        frame_doc = FrameDocument(bone.summary(), frame)
         if until == "frame":
-            with timings.stage("anatomical frame"):
-                frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
-            frame_doc = FrameDocument(bone.summary(), frame)
             with timings.stage("reference entities to STEP"):
                 export("frame", frame_doc, stage_dir, only=["step"])
             result = Reconstruction(bone=bone, frame=frame)
         else:
-            # two jobs beside this process's imports, each finding the frame itself (deterministic,
-            # 0.1-0.6 s): the distal and shaft curves in one, the proximal ones in the other
-            lower = ex.submit(frame_and_curves, bone, settings, ("distal", "shaft"))
-            upper = ex.submit(frame_and_curves, bone, settings, ("proximal",))
-            with timings.stage("OpenCascade and matplotlib imports"), ex.shielded():
-                for module in ("bonecad.occ.brep", "bonecad.render.figures", "bonecad.export.cad"):
-                    importlib.import_module(module)
-            with timings.stage("waiting for the frame and the contour curves"):
-                frame, (distal, shaft), lower_timings = lower.result()
-                upper_frame, (proximal,), upper_timings = upper.result()
-            if pickle.dumps(upper_frame) != pickle.dumps(frame):
-                raise RuntimeError("the two frame-and-curves jobs found different frames")
-            timings.update({**upper_timings, **lower_timings})
-            contours = assemble_contours(frame, distal, shaft, proximal)
-            frame_doc = FrameDocument(bone.summary(), frame)
+            assert contours is not None
             result = _curves_and_models(bone, frame, contours, stage_dir, settings, models, timings, ex)
         # no timings (report.json and the log have them): the same input gives the same frame.json
         export("frame", frame_doc, stage_dir, only=["json"])
@@ -206,19 +196,18 @@ def reconstruct_bone(
     return replace(result, out_dir=out_dir, files=files, timings_s=dict(timings.seconds), wall_s=timings.wall_s())
 
 
-def frame_and_curves(bone: BoneMesh, settings: Settings, regions: tuple[Region, ...]
-                     ) -> tuple[AnatomicalFrame, tuple, dict[str, float]]:
-    """The anatomical frame, then the contour curves of ``regions`` ("distal", "shaft", "proximal"): a
-    job beside this process's imports. Returns them with their stage times (s)."""
+def frame_and_contours(bone: BoneMesh, settings: Settings, with_contours: bool
+                       ) -> tuple[AnatomicalFrame, ContourSet | None, dict[str, float]]:
+    """The anatomical frame, then (``with_contours``) the contour curves: the job that runs beside this
+    process's imports. Returns them with their stage times (s)."""
     timings = Timings()
     with timings.stage("anatomical frame"):
         frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
-    curves: list = []
-    with timings.stage("contour curves: " + " and ".join(regions)):
-        for region in regions:
-            curves.append(shaft_curves(bone, frame, settings=settings.curves) if region == "shaft"
-                          else end_curves(bone, frame, region, settings=settings.curves))
-    return frame, tuple(curves), timings.seconds
+    if not with_contours:
+        return frame, None, timings.seconds
+    with timings.stage("contour curves"):
+        contours = contour_curves(bone, frame, settings=settings.curves)
+    return frame, contours, timings.seconds
 
 
 def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: ContourSet, stage_dir: Path,
