@@ -38,26 +38,15 @@ def frame_step(doc: FrameDocument, out_dir: Path) -> Path:
     return write_step(("reference_entities", frame_entities(doc.frame)), out_dir / "curves.step")
 
 
-def _model_file(model: NurbsModel | TSplineModel, name: str, out_dir: Path, fmt: str) -> Path:
+def _register_model_exporter(kind: str, fmt: str) -> None:
+    """``{kind}.{fmt}``: the model's solid named ``kind``, every face named by its region (scanner mm)."""
     write = brep.write_named_step if fmt == "step" else brep.write_named_iges
-    return write(model.shape, out_dir / f"{name}.{fmt}", name, list(model.face_names))
+
+    @exporter(kind, fmt)
+    def model_file(model: NurbsModel | TSplineModel, out_dir: Path) -> Path:
+        return write(model.shape, out_dir / f"{kind}.{fmt}", kind, list(model.face_names))
 
 
-@exporter("nurbs", "step")
-def nurbs_step(model: NurbsModel, out_dir: Path) -> Path:
-    return _model_file(model, "nurbs", out_dir, "step")
-
-
-@exporter("nurbs", "iges")
-def nurbs_iges(model: NurbsModel, out_dir: Path) -> Path:
-    return _model_file(model, "nurbs", out_dir, "iges")
-
-
-@exporter("tspline", "step")
-def tspline_step(model: TSplineModel, out_dir: Path) -> Path:
-    return _model_file(model, "tspline", out_dir, "step")
-
-
-@exporter("tspline", "iges")
-def tspline_iges(model: TSplineModel, out_dir: Path) -> Path:
-    return _model_file(model, "tspline", out_dir, "iges")
+for _kind in ("nurbs", "tspline"):
+    for _fmt in ("step", "iges"):
+        _register_model_exporter(_kind, _fmt)

@@ -174,21 +174,22 @@ def reconstruct_bone(
     ex = executor if executor is not None else executor_for(settings.pipeline.background_jobs)
     out_dir = Path(out_dir)
     with staged_output(out_dir) as stage_dir, ex:
-        front = ex.submit(frame_and_contours, bone, settings, until != "frame")
-        if until != "frame":
-            with timings.stage("OpenCascade and matplotlib imports"), ex.shielded():
-                for module in ("bonecad.occ.brep", "bonecad.render.figures", "bonecad.export.cad"):
-                    importlib.import_module(module)
-        with timings.stage("waiting for the frame and the contour curves"):
-            frame, contours, front_timings = front.result()
-        timings.update(front_timings)
-        frame_doc = FrameDocument(bone.summary(), frame)
         if until == "frame":
+            with timings.stage("anatomical frame"):
+                frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+            frame_doc = FrameDocument(bone.summary(), frame)
             with timings.stage("reference entities to STEP"):
                 export("frame", frame_doc, stage_dir, only=["step"])
             result = Reconstruction(bone=bone, frame=frame)
         else:
-            assert contours is not None
+            front = ex.submit(frame_and_contours, bone, settings)
+            with timings.stage("OpenCascade and matplotlib imports"), ex.shielded():
+                for module in ("bonecad.occ.brep", "bonecad.render.figures", "bonecad.export.cad"):
+                    importlib.import_module(module)
+            with timings.stage("waiting for the frame and the contour curves"):
+                frame, contours, front_timings = front.result()
+            timings.update(front_timings)
+            frame_doc = FrameDocument(bone.summary(), frame)
             result = _curves_and_models(bone, frame, contours, stage_dir, settings, models, timings, ex)
         # no timings (report.json and the log have them): the same input gives the same frame.json
         export("frame", frame_doc, stage_dir, only=["json"])
@@ -196,15 +197,13 @@ def reconstruct_bone(
     return replace(result, out_dir=out_dir, files=files, timings_s=dict(timings.seconds), wall_s=timings.wall_s())
 
 
-def frame_and_contours(bone: BoneMesh, settings: Settings, with_contours: bool
-                       ) -> tuple[AnatomicalFrame, ContourSet | None, dict[str, float]]:
-    """The anatomical frame, then (``with_contours``) the contour curves: the job that runs beside this
-    process's imports. Returns them with their stage times (s)."""
+def frame_and_contours(bone: BoneMesh, settings: Settings
+                       ) -> tuple[AnatomicalFrame, ContourSet, dict[str, float]]:
+    """The anatomical frame, then the contour curves: the job that runs beside this process's imports.
+    Returns them with their stage times (s)."""
     timings = Timings()
     with timings.stage("anatomical frame"):
         frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
-    if not with_contours:
-        return frame, None, timings.seconds
     with timings.stage("contour curves"):
         contours = contour_curves(bone, frame, settings=settings.curves)
     return frame, contours, timings.seconds
