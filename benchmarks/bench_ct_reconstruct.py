@@ -46,7 +46,8 @@ def main() -> None:
         frame = bonecad.anatomical_frame(bone, SETTINGS)
         from_mesh = figures(bone, bone, frame)
         start = time.perf_counter()
-        segmented = segment_bone(mesh_to_ct(bone.vertices, bone.faces, voxel_mm=0.5, noise_hu=30.0))
+        segmented = segment_bone(mesh_to_ct(bone.vertices, bone.faces, voxel_mm=0.5, noise_hu=30.0),
+                                 settings=SETTINGS.mesh)
         seconds = time.perf_counter() - start
         from_ct = figures(segmented, bone, frame)
         for label, f in (("mesh", from_mesh), ("CT", from_ct)):

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bonecad.settings import Settings
+
 ROOT = Path(__file__).resolve().parents[1]
 TIBIA_DIR = ROOT.parent / "shared" / "data" / "tibia"
 LARGE_SHAPE = (800, 512, 512)  # (slices, rows, columns)
@@ -70,7 +72,7 @@ def segment_file(path: Path) -> dict:
     volume = read_volume(path)
     t1 = time.perf_counter()
     rss_read = _peak_rss_mb()
-    mesh = segment_bone(volume)
+    mesh = segment_bone(volume, settings=Settings.load().mesh)
     t2 = time.perf_counter()
     return {
         "shape": list(volume.shape),
@@ -106,7 +108,7 @@ def bench_round_trips() -> list[dict]:
 
     rows = []
     for path in sorted(TIBIA_DIR.glob("*.stl")):
-        trip = round_trip(trimesh.load(path), voxel_mm=VOXEL_MM, noise_hu=30.0)
+        trip = round_trip(trimesh.load(path), settings=Settings.load().mesh, voxel_mm=VOXEL_MM, noise_hu=30.0)
         d = trip.distance
         rows.append(
             {

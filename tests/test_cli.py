@@ -95,3 +95,22 @@ def test_segment_command(phantom, tmp_path, capsys):
     phantom.to_trimesh().export(mesh)
     assert main(["segment", str(mesh), "--out", str(tmp_path / "again.stl"), "-q"]) == 2
     assert not (tmp_path / "again.stl").exists()
+
+
+def test_a_ct_input_writes_the_segmented_tibia_beside_the_models(phantom, tmp_path):
+    """bone.stl: the polygonal model segmented from the CT, the one the frame (and the models) were built on;
+    a mesh input has no such file (the user has it)."""
+    from bonecad.imaging import mesh_to_ct
+    from bonecad.imaging.volume import write_nifti
+
+    ct = write_nifti(mesh_to_ct(phantom.vertices, phantom.faces, voxel_mm=1.5, noise_hu=30.0), tmp_path / "ct.nii.gz")
+    out = tmp_path / "from_ct"
+    assert main(["frame", str(ct), "--out", str(out), "-q"]) == 0
+    bone = trimesh.load(out / "bone.stl")
+    frame = json.loads((out / "frame.json").read_text())
+    assert bone.is_watertight and len(bone.faces) == frame["input"]["triangles"]
+    assert abs(bone.volume - phantom.to_trimesh().volume) / phantom.to_trimesh().volume < 0.05
+    mesh = tmp_path / "phantom.stl"
+    phantom.to_trimesh().export(mesh)
+    assert main(["frame", str(mesh), "--out", str(tmp_path / "from_mesh"), "-q"]) == 0
+    assert not (tmp_path / "from_mesh" / "bone.stl").exists()

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bonecad.settings import MeshSettings
+
 
 @dataclass(frozen=True)
 class SurfaceDistance:
@@ -80,8 +82,10 @@ class RoundTrip:
     segment_seconds: float
 
 
-def round_trip(mesh, *, voxel_mm: float = 0.5, noise_hu: float = 30.0, seed: int = 0) -> RoundTrip:
-    """Synthetic CT of trimesh ``mesh`` (``voxel_mm`` mm, ``noise_hu`` HU noise), segmented, compared with its tibia."""
+def round_trip(mesh, *, settings: MeshSettings, voxel_mm: float = 0.5, noise_hu: float = 30.0, seed: int = 0
+               ) -> RoundTrip:
+    """Synthetic CT of trimesh ``mesh`` (``voxel_mm`` mm, ``noise_hu`` HU noise), segmented (``settings``:
+    the [mesh] section), compared with its tibia."""
     import time
 
     from bonecad.imaging.phantom import mesh_to_ct
@@ -90,7 +94,7 @@ def round_trip(mesh, *, voxel_mm: float = 0.5, noise_hu: float = 30.0, seed: int
     start = time.perf_counter()
     ct = mesh_to_ct(mesh.vertices, mesh.faces, voxel_mm=voxel_mm, noise_hu=noise_hu, seed=seed)
     middle = time.perf_counter()
-    segmented = segment_bone(ct)
+    segmented = segment_bone(ct, settings=settings)
     end = time.perf_counter()
     distance = surface_distance(segmented.to_trimesh(), largest_body(mesh), seed=seed)
     return RoundTrip(distance, segmented, ct.shape, middle - start, end - middle)

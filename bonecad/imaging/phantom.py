@@ -23,7 +23,7 @@ def mesh_to_ct(
     vertices: np.ndarray,
     faces: np.ndarray,
     *,
-    voxel_mm: float = 0.5,
+    voxel_mm: float | tuple[float, float, float] = 0.5,
     noise_hu: float = 30.0,
     blur_mm: float = 0.4,
     missing_slices: tuple[int, ...] | list[int] = (),
@@ -35,7 +35,9 @@ def mesh_to_ct(
     """A synthetic CT volume of the closed mesh (all its bodies).
 
     vertices : (n, 3) float, LPS mm; faces : (m, 3) int (either orientation)
-    voxel_mm : isotropic voxel edge, mm
+    voxel_mm : voxel edge, mm: one value for cubic voxels, or (x, y, z) for a
+        clinical grid (in-plane pixel, slice spacing; e.g. (0.7, 0.7, 2.0));
+        a slice's value is the mean over its thickness (box slice profile)
     noise_hu : standard deviation of the added Gaussian noise, HU
     blur_mm : standard deviation of the Gaussian point-spread function, mm
     missing_slices : slice indices k left out of the acquisition (their data is
@@ -50,23 +52,32 @@ def mesh_to_ct(
     faces = np.asarray(faces, dtype=np.int64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
         raise ValueError(f"expected (n, 3) vertices and (m, 3) faces, got {vertices.shape} and {faces.shape}")
-    if voxel_mm <= 0 or blur_mm < 0 or noise_hu < 0 or cortex_mm <= 0:
+    spacing = np.broadcast_to(np.asarray(voxel_mm, dtype=np.float64), (3,)).copy()  # (x, y, z) mm
+    if np.any(spacing <= 0) or blur_mm < 0 or noise_hu < 0 or cortex_mm <= 0:
         raise ValueError("voxel_mm and cortex_mm must be positive, blur_mm and noise_hu non-negative")
     faces = _outward(vertices, faces)
     low = vertices.min(axis=0) - margin_mm
     high = vertices.max(axis=0) + margin_mm
-    counts = np.ceil((high - low) / voxel_mm).astype(np.int64) + 1
+    counts = np.ceil((high - low) / spacing).astype(np.int64) + 1
     shape = (int(counts[2]), int(counts[1]), int(counts[0]))
-    bone = occupancy(vertices, faces, low, voxel_mm, shape)
+    # Thick slices: the occupancy of thin sub-slices (about as thick as the
+    # pixels are wide) averaged over each slice, the slice's own partial volume.
+    sub = max(1, int(round(spacing[2] / min(spacing[0], spacing[1]))))
+    fine = spacing / np.array([1.0, 1.0, sub])
+    fine_low = low - np.array([0.0, 0.0, 0.5 * (spacing[2] - fine[2])])
+    bone = occupancy(vertices, faces, fine_low, fine, (shape[0] * sub, shape[1], shape[2]))
+    if sub > 1:
+        bone = bone.reshape(shape[0], sub, shape[1], shape[2]).mean(axis=1)
+    spacing_kji = spacing[::-1]
 
     solid = bone >= 0.5
     # Marrow share of each voxel: 0 within the cortex, rising to 1 over one voxel
     # (a partial-volume inner boundary, so a thin cortex has no see-through gaps).
-    depth = _coarse_distance(solid, voxel_mm, inside=True, grid_mm=1.0)
-    marrow = np.clip((depth - np.float32(cortex_mm)) / np.float32(voxel_mm), 0.0, 1.0)
+    depth = _coarse_distance(solid, spacing_kji, inside=True, grid_mm=1.0)
+    marrow = np.clip((depth - np.float32(cortex_mm)) / np.float32(spacing.max()), 0.0, 1.0)
     del depth
     # The tissue/air border is far from the bone: a 3 mm grid places it well enough.
-    near = _coarse_distance(solid, voxel_mm, inside=False, grid_mm=3.0) <= soft_tissue_mm
+    near = _coarse_distance(solid, spacing_kji, inside=False, grid_mm=3.0) <= soft_tissue_mm
     hu = np.where(near, np.float32(SOFT_TISSUE_HU), np.float32(AIR_HU))
     del near, solid
     inside = np.float32(CORTICAL_HU) + marrow * np.float32(MARROW_HU - CORTICAL_HU)
@@ -74,7 +85,7 @@ def mesh_to_ct(
     hu += bone * (inside - hu)
     del inside, bone
     if blur_mm > 0:
-        ndimage.gaussian_filter(hu, sigma=blur_mm / voxel_mm, output=hu, mode="nearest")
+        ndimage.gaussian_filter(hu, sigma=tuple(blur_mm / spacing_kji), output=hu, mode="nearest")
     if noise_hu > 0:
         rng = np.random.default_rng(seed)
         for k in range(shape[0]):
@@ -84,7 +95,7 @@ def mesh_to_ct(
         _interpolate_missing(hu, missing)
 
     affine = np.eye(4)
-    affine[:3, :3] *= voxel_mm
+    affine[:3, :3] = np.diag(spacing)
     affine[:3, 3] = low
     return CTVolume(hu=hu, affine=affine, source="", missing_slices=missing)
 
@@ -98,25 +109,28 @@ def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return faces if signed > 0 else faces[:, ::-1]
 
 
-def _coarse_distance(mask: np.ndarray, voxel_mm: float, *, inside: bool, grid_mm: float) -> np.ndarray:
+def _coarse_distance(mask: np.ndarray, spacing_kji: np.ndarray, *, inside: bool, grid_mm: float) -> np.ndarray:
     """Distance (mm) between voxel centres and the mask's boundary, from inside or outside.
 
-    Computed on a grid of about ``grid_mm`` and interpolated back to the mask's grid.
+    spacing_kji : voxel edges along the array's axes, mm. Computed on a grid of
+    about ``grid_mm`` and interpolated back to the mask's grid.
     """
-    factor = max(1, int(round(grid_mm / voxel_mm)))
-    pad = [(0, (-n) % factor) for n in mask.shape]
+    factors = [max(1, int(round(grid_mm / d))) for d in spacing_kji]
+    pad = [(0, (-n) % f) for n, f in zip(mask.shape, factors)]
     padded = np.pad(mask, pad, mode="edge")
     blocks = padded.reshape(
-        padded.shape[0] // factor, factor, padded.shape[1] // factor, factor, padded.shape[2] // factor, factor
+        padded.shape[0] // factors[0], factors[0], padded.shape[1] // factors[1], factors[1],
+        padded.shape[2] // factors[2], factors[2],
     )
     # Inside distances use blocks wholly inside; outside distances blocks touching the bone.
     coarse = blocks.all(axis=(1, 3, 5)) if inside else ~blocks.any(axis=(1, 3, 5))
-    dist = ndimage.distance_transform_edt(coarse, sampling=factor * voxel_mm).astype(np.float32)
-    if factor > 1:
-        for axis in range(3):
-            dist = np.repeat(dist, factor, axis=axis)
+    sampling = [f * d for f, d in zip(factors, spacing_kji)]
+    dist = ndimage.distance_transform_edt(coarse, sampling=sampling).astype(np.float32)
+    if max(factors) > 1:
+        for axis, f in enumerate(factors):
+            dist = np.repeat(dist, f, axis=axis)
         # A box filter over the blocks ~ linear interpolation between block centres.
-        ndimage.uniform_filter(dist, size=factor, output=dist, mode="nearest")
+        ndimage.uniform_filter(dist, size=factors, output=dist, mode="nearest")
     return dist[: mask.shape[0], : mask.shape[1], : mask.shape[2]]
 
 

@@ -17,7 +17,9 @@ from scipy import ndimage
 
 from bonecad.errors import InputError
 from bonecad.imaging.volume import CTVolume
+from bonecad.mesh.bodies import neck_index
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
+from bonecad.settings import MeshSettings
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +41,7 @@ _BESIDE_DISTANCE_SHARE = 0.2
 # a split counts when at least two parts hold this share of the eroded voxels
 # and reach this share of the body's length (the fibula: ~15 % of the volume,
 # ~95 % of the length; knobs cut off by the erosion are short).
-_SPLIT_ERODE_MM = 3.0
+_SPLIT_ERODE_MM = 5.0
 _SPLIT_PART_SHARE = 0.03
 _SPLIT_LENGTH_SHARE = 0.4
 # The tibia's mask grows this many voxels into voxels above half-way between
@@ -78,6 +80,7 @@ def _levels(volume: CTVolume) -> tuple[float, float]:
 def segment_bone(
     volume: CTVolume,
     *,
+    settings: MeshSettings,
     level_hu: float | None = None,
     smoothing_iterations: int = 10,
     target_faces: int | None = None,
@@ -88,6 +91,9 @@ def segment_bone(
         cortical bone and soft tissue, clamped to 350-1000 HU)
     smoothing_iterations : Taubin iterations (lambda 0.5, mu -0.53); 0 for none
     target_faces : decimate to about this many triangles (None: keep all)
+    settings : the neck rule of fused bones ([mesh] fused_neck_*): a talus or
+        femur joined to the tibia through a joint space the voxels do not
+        resolve is separated along the joint (``_split_at_neck``)
 
     Returns a BoneMesh in LPS world mm, normals outward. Raises InputError when
     no bone is found, when the tibia cannot be told apart, or when the tibia
@@ -105,9 +111,17 @@ def segment_bone(
     labels, count = ndimage.label(mask)
     del mask
     bodies = _bodies(labels, count, offset, volume)
-    if _split_touching(labels, count, bodies, volume):
+    if _split_touching(labels, count, bodies, offset, volume):
         bodies = _bodies(labels, int(labels.max()), offset, volume)
     tibia, roles = _pick_tibia(bodies, path)
+    separated: tuple[str, ...] = ()
+    for _ in range(2):  # a talus at the ankle, a femur at the knee
+        found = _split_at_neck(labels, tibia, offset, volume, settings)
+        if not found:
+            break
+        separated += found
+        bodies = _bodies(labels, int(labels.max()), offset, volume)
+        tibia, roles = _pick_tibia(bodies, path)
     _check_whole(tibia, offset, volume, path)
 
     # The tibia's box in the volume, padded by 2 voxels (HU beyond the volume: far below the level).
@@ -169,7 +183,9 @@ def segment_bone(
         faces=np.asarray(mesh.faces, dtype=np.int64),
         source=volume.source,
         bodies=infos,
+        repairs=separated,
         watertight=bool(mesh.is_watertight),
+        segmented=True,
         extra={"level_hu": level, "voxel_mm": volume.spacing_mm.tolist()},
     )
 
@@ -303,11 +319,15 @@ def _check_whole(tibia: _Body, offset: np.ndarray, volume: CTVolume, path: objec
             )
 
 
+def _array_axis_along(axis_world: np.ndarray, volume: CTVolume) -> int:
+    """The array axis (0: k, 1: j, 2: i) nearest to a world direction."""
+    steps = volume.affine[:3, :3] / volume.spacing_mm
+    return 2 - int(np.argmax(np.abs(steps.T @ axis_world)))  # index axis 0: i, 1: j, 2: k
+
+
 def _fill_cross_sections(mask: np.ndarray, axis_world: np.ndarray, volume: CTVolume) -> np.ndarray:
     """Fill holes in each cross-section perpendicular to the array axis nearest the bone's long axis."""
-    steps = volume.affine[:3, :3] / volume.spacing_mm
-    along = int(np.argmax(np.abs(steps.T @ axis_world)))  # 0: i, 1: j, 2: k
-    array_axis = 2 - along
+    array_axis = _array_axis_along(axis_world, volume)
     out = np.moveaxis(mask, array_axis, 0).copy()
     for n in range(out.shape[0]):
         if out[n].any():
@@ -328,7 +348,8 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
     return ~np.isin(background, outside_labels) | mask
 
 
-def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume: CTVolume) -> bool:
+def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], offset: np.ndarray, volume: CTVolume
+                    ) -> bool:
     """Split long bodies that are two bones touching (tibia and fibula at a joint), in place in ``labels``.
 
     The filled body is eroded on a grid of about 1 mm, up to _SPLIT_ERODE_MM;
@@ -338,8 +359,8 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume:
     if not bodies:
         return False
     longest = max(b.length_mm for b in bodies)
-    spacing = volume.spacing_mm
-    factor = max(1, int(round(1.0 / float(spacing.min()))))
+    spacing_kji = volume.spacing_mm[::-1]
+    factors = np.maximum(1, np.round(1.0 / spacing_kji)).astype(int)  # per array axis: blocks of about 1 mm
     split_any = False
     for body in bodies:
         if body.length_mm < _LONG_SHARE * longest:
@@ -347,30 +368,32 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume:
         region = labels[body.slices]
         own = region == body.label
         filled = _fill_holes(own)
-        coarse = _block_mean(filled, factor) >= 0.5
+        coarse = _block_mean(filled, factors) >= 0.5
+        # Erosion by r mm: the coarse voxels deeper than r (exact Euclidean depth on an anisotropic grid).
+        depth = ndimage.distance_transform_edt(coarse, sampling=factors * spacing_kji)
         parts = None
-        for _ in range(int(np.ceil(_SPLIT_ERODE_MM / (factor * spacing.min())))):
-            coarse = ndimage.binary_erosion(coarse)
-            found, n = ndimage.label(coarse)
+        for r in np.arange(1.0, _SPLIT_ERODE_MM + 0.5, 1.0):
+            found, n = ndimage.label(depth > r)
             if n < 2:
                 continue
             sizes = np.bincount(found.ravel())[1:]
             keep = [
                 lab + 1
                 for lab in np.flatnonzero(sizes >= _SPLIT_PART_SHARE * sizes.sum())
-                if _part_length(found == lab + 1, factor, body, volume) >= _SPLIT_LENGTH_SHARE * body.length_mm
+                if _part_length(found == lab + 1, factors, body, volume) >= _SPLIT_LENGTH_SHARE * body.length_mm
             ]
             if len(keep) >= 2:
                 parts = np.where(np.isin(found, keep), found, 0)
                 break
         if parts is None:
             continue
-        _, nearest_index = ndimage.distance_transform_edt(parts == 0, return_indices=True)
-        nearest = parts[tuple(nearest_index)]
+        # Every voxel of the filled body goes to the nearest part (in mm), so each bone keeps a closed
+        # cross-section, marrow too; the first part keeps the body's label.
+        _, index = ndimage.distance_transform_edt(parts == 0, sampling=factors * spacing_kji, return_indices=True)
+        nearest = parts[tuple(index)]
         for axis in range(3):
-            nearest = np.repeat(nearest, factor, axis=axis)
+            nearest = np.repeat(nearest, factors[axis], axis=axis)
         nearest = nearest[: own.shape[0], : own.shape[1], : own.shape[2]]
-        # The filled body (marrow too) is shared out, so each bone keeps a closed cross-section.
         target = filled & ((region == 0) | own)
         first = nearest[target].min()
         new = np.where(nearest[target] == first, body.label, nearest[target] + count)
@@ -381,21 +404,96 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume:
     return split_any
 
 
-def _block_mean(mask: np.ndarray, factor: int) -> np.ndarray:
-    """Mean of ``mask`` over factor^3 blocks (the array padded with False to a multiple)."""
-    if factor == 1:
+def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume: CTVolume,
+                   settings: MeshSettings) -> tuple[str, ...]:
+    """Separate a bone fused to one end of the tibia (talus at the ankle, femur at the knee), in place in
+    ``labels``; returns what was separated (for the bone's repairs), or nothing.
+
+    A joint space thinner than a voxel (2 mm slices at the ankle) joins both
+    bones in the threshold mask. Walking from each end of the filled body along
+    its axis, the cross-section areas (``settings.fused_neck_*``) fall to a neck
+    at the joint and rise again. A marker-controlled watershed of the depth
+    below the body's surface then parts the two where the depth has its saddle,
+    in the neck: one marker is the tibia beyond the neck's reach, the other the
+    deep core of the bone beyond the neck (voxels at least half as deep as its
+    deepest one, so a malleolus beside the talus stays with the tibia). The
+    grey values cannot guide it: with slices as thick as the joint space, the
+    joint's voxels are as bright as bone.
+    """
+    from skimage.segmentation import watershed
+
+    region = labels[tibia.slices]
+    own = region == tibia.label
+    filled = _fill_cross_sections(own, tibia.axis, volume)  # solid sections, marrow and all
+    kji = np.argwhere(filled)
+    start = np.array([s.start for s in tibia.slices]) + offset
+    heights = volume.index_to_world((kji + start)[:, ::-1].astype(np.float64)) @ tibia.axis
+    low, high = float(heights.min()), float(heights.max())
+    spacing_kji = volume.spacing_mm[::-1]
+    # bins of whole slices along the axis (no aliasing between 1 and 2 slices a bin), at most 3 mm
+    along = float(spacing_kji[_array_axis_along(tibia.axis, volume)])
+    step = along * max(1, int(3.0 / along))
+    voxel_mm3 = abs(float(np.linalg.det(volume.affine[:3, :3])))
+    zone = settings.fused_neck_zone_share * (high - low)
+    for end, sign in ((low, 1.0), (high, -1.0)):
+        depth = sign * (heights - end)  # mm from this end, inwards
+        bins = np.floor(depth / step).astype(np.int64)
+        inside = depth < zone
+        areas = np.bincount(bins[inside], minlength=int(zone // step) + 1) * voxel_mm3 / step
+        k = neck_index(areas, settings.fused_neck_ratio)
+        if k is None:
+            continue
+        neck_mm = (k + 0.5) * step
+        beyond = depth < neck_mm - step
+        near = depth > neck_mm + 2 * step
+        if not beyond.any() or not near.any():
+            continue
+        distance = ndimage.distance_transform_edt(filled, sampling=spacing_kji)
+        deep = distance[tuple(kji.T)]
+        core_depth = 0.5 * deep[beyond].max()
+        core = np.zeros(filled.shape, dtype=bool)
+        core[tuple(kji[beyond & (deep >= core_depth)].T)] = True
+        parts, _ = ndimage.label(core)
+        deepest = tuple(kji[beyond][np.argmax(deep[beyond])])
+        markers = np.zeros(filled.shape, dtype=np.int32)
+        markers[parts == parts[deepest]] = 2
+        markers[tuple(kji[near].T)] = 1
+        second = watershed(-distance, markers, mask=filled) == 2
+        share = float(second.sum()) / float(filled.sum())
+        if share < _FRAGMENT_SHARE:
+            continue
+        target = filled & ((region == 0) | own)
+        new_label = int(labels.max()) + 1
+        region[target & second] = new_label
+        region[target & ~second] = tibia.label
+        bone, end_name = ("talus", "distal") if _points_down(sign, tibia) else ("femur", "proximal")
+        what = (f"separated the {bone} ({second.sum() * voxel_mm3 / 1000:.0f} cm3), fused to the tibia's "
+                f"{end_name} end through a joint space the voxels do not resolve (neck {neck_mm:.0f} mm from "
+                "the end)")
+        log.info(what)
+        return (what,)
+    return ()
+
+
+def _points_down(sign: float, tibia: _Body) -> bool:
+    """Whether the end walked from (sign +1: the low end along ``tibia.axis``) is the lower one in z."""
+    return (sign > 0) == (tibia.axis[2] > 0)
+
+
+def _block_mean(mask: np.ndarray, factors: np.ndarray) -> np.ndarray:
+    """Mean of ``mask`` over blocks of ``factors`` voxels per array axis (padded with False to a multiple)."""
+    if np.all(factors == 1):
         return mask.astype(np.float32)
-    pad = [(0, (-n) % factor) for n in mask.shape]
-    padded = np.pad(mask, pad)
+    padded = np.pad(mask, [(0, (-n) % f) for n, f in zip(mask.shape, factors)])
     shape = []
-    for n in padded.shape:
-        shape += [n // factor, factor]
+    for n, f in zip(padded.shape, factors):
+        shape += [n // f, f]
     return padded.reshape(shape).mean(axis=(1, 3, 5), dtype=np.float32)
 
 
-def _part_length(part: np.ndarray, factor: int, body: _Body, volume: CTVolume) -> float:
+def _part_length(part: np.ndarray, factors: np.ndarray, body: _Body, volume: CTVolume) -> float:
     """Extent (mm) of a coarse part along the body's principal axis."""
-    kji = np.argwhere(part) * factor
+    kji = np.argwhere(part) * factors
     xyz = volume.index_to_world(kji[:, ::-1].astype(np.float64))
     along = xyz @ body.axis
     return float(along.max() - along.min())

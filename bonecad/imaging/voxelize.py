@@ -14,15 +14,22 @@ import numpy as np
 
 
 def occupancy(
-    vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, spacing_mm: float, shape: tuple[int, int, int]
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    origin: np.ndarray,
+    spacing_mm: float | np.ndarray,
+    shape: tuple[int, int, int],
 ) -> np.ndarray:
     """(nz, ny, nx) float32 share of each voxel inside the mesh.
 
     vertices : (n, 3) float, mm; faces : (m, 3) int, outward normals
     origin : (3,) world (x, y, z) of voxel [0, 0, 0]'s centre, mm
-    spacing_mm : voxel edge, mm; shape : (nz, ny, nx)
+    spacing_mm : voxel edge, mm: one for a cubic grid or (x, y, z) for an
+        anisotropic one (the shares are taken in voxel units, where every
+        voxel is a unit cube); shape : (nz, ny, nx)
     """
-    vertices = (np.asarray(vertices, dtype=np.float64) - np.asarray(origin, dtype=np.float64)) / spacing_mm
+    spacing = np.broadcast_to(np.asarray(spacing_mm, dtype=np.float64), (3,))
+    vertices = (np.asarray(vertices, dtype=np.float64) - np.asarray(origin, dtype=np.float64)) / spacing
     faces = np.asarray(faces, dtype=np.int64)
     total = np.zeros(shape, dtype=np.float32)
     # Grid axis a of the (x, y, z) world is array axis 2 - a.

@@ -126,6 +126,18 @@ def _loop_areas(section) -> np.ndarray:
     return np.sort(np.array(areas))[::-1]
 
 
+def neck_index(areas: np.ndarray, ratio: float) -> int | None:
+    """Index of the neck in section areas (mm^2) walking from a bone's end inwards: the smallest area with
+    at least ``ratio`` times it both between it and the end and beyond it (a second bone joined to the end
+    through a narrow joint); None when the areas show no neck."""
+    outer_peak = np.maximum.accumulate(areas)  # largest area between the end and each depth
+    inner_peak = np.maximum.accumulate(areas[::-1])[::-1]  # ... between each depth and the zone's inner edge
+    neck = (outer_peak >= ratio * areas) & (inner_peak >= ratio * areas) & (areas > 0)
+    if not neck.any():
+        return None
+    return int(np.argmin(np.where(neck, areas, np.inf)))
+
+
 def check_not_fused(
     vertices: np.ndarray, faces: np.ndarray, settings: MeshSettings, length_range: tuple[float, float],
     source: Path | None,
@@ -168,16 +180,13 @@ def check_not_fused(
     depth = np.arange(1.0, settings.fused_neck_zone_share * length, step)
     for name, end, sign in (("distal", bottom, 1.0), ("proximal", top, -1.0)):
         areas, _ = section_stack(vertices, faces, centre, up, end + sign * depth)
-        outer_peak = np.maximum.accumulate(areas)  # largest area between the end and each depth
-        inner_peak = np.maximum.accumulate(areas[::-1])[::-1]  # ... between each depth and the zone's inner edge
-        ratio = settings.fused_neck_ratio
-        neck = (outer_peak >= ratio * areas) & (inner_peak >= ratio * areas) & (areas > 0)
-        if neck.any():
-            k = int(np.argmin(np.where(neck, areas, np.inf)))
+        k = neck_index(areas, settings.fused_neck_ratio)
+        if k is not None:
+            outer_peak, inner_peak = areas[: k + 1].max(), areas[k:].max()
             bone = "talus at the ankle" if name == "distal" else "femur (or patella) at the knee"
             raise InputError(
                 f"the tibia seems fused to its {bone}: a second bone hangs beyond its {name} end, joined to it "
-                f"through a neck {depth[k]:.0f} mm from that end (section areas {outer_peak[k]:.0f} -> "
-                f"{areas[k]:.0f} -> {inner_peak[k]:.0f} mm^2){advice}",
+                f"through a neck {depth[k]:.0f} mm from that end (section areas {outer_peak:.0f} -> "
+                f"{areas[k]:.0f} -> {inner_peak:.0f} mm^2){advice}",
                 source,
             )

@@ -24,6 +24,8 @@ class BoneMesh:
 
     vertices : (n, 3) float64, mm
     faces : (m, 3) int64, counter-clockwise seen from outside (normals point out)
+    segmented : True when bonecad segmented it from a CT volume: the polygonal
+        model the CAD models are fitted to, written as bone.stl beside them
     """
 
     vertices: np.ndarray
@@ -33,6 +35,7 @@ class BoneMesh:
     bodies: tuple[BodyInfo, ...] = ()
     repairs: tuple[str, ...] = ()
     watertight: bool = True
+    segmented: bool = False
     extra: dict = field(default_factory=dict)
 
     @property

@@ -195,7 +195,7 @@ def _run(args: argparse.Namespace) -> None:
         _print_result(result)
         print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
     elif args.command == "segment":
-        bone = pipeline.run_segment(args.ct, args.out)
+        bone = pipeline.run_segment(args.ct, args.out, settings)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
     elif args.command == "demo":
         result = pipeline.run_demo(args.out, settings)

@@ -107,30 +107,39 @@ def is_volume(path: str | Path) -> bool:
     return path.is_dir() or path.name.lower().endswith(VOLUME_SUFFIXES)
 
 
-def segment_ct(path: str | Path) -> BoneMesh:
-    """The tibia's surface from a CT volume (DICOM folder, NIfTI, NRRD, MHA), world mm (LPS)."""
+def segment_ct(path: str | Path, settings: Settings) -> BoneMesh:
+    """The tibia's surface from a CT volume (DICOM folder, NIfTI, NRRD, MHA), world mm (LPS).
+
+    The segmented tibia passes the same fused-bone check as a mesh input: a
+    neighbour the segmentation could not separate is an input error naming it."""
     from bonecad.imaging import segment_bone
     from bonecad.imaging.volume import read_volume
+    from bonecad.mesh.bodies import check_not_fused
 
     log.info("reading CT volume %s", path)
     volume = read_volume(path)
     log.info("segmenting bone (%d x %d x %d voxels)", *volume.hu.shape[::-1])
-    return segment_bone(volume)
+    bone = segment_bone(volume, settings=settings.mesh)
+    for repair in bone.repairs:
+        log.info("%s", repair)
+    lo, hi = settings.units.tibia_length_mm
+    check_not_fused(bone.vertices, bone.faces, settings.mesh, (float(lo), float(hi)), Path(path))
+    return bone
 
 
 def load_input(path: str | Path, settings: Settings, *, units: Units = "auto") -> BoneMesh:
     """The tibia mesh of an input: read a mesh file, or segment a CT volume."""
     if is_volume(path):
-        return segment_ct(path)
+        return segment_ct(path, settings)
     return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
 
 
-def run_segment(path: str | Path, out_mesh: str | Path) -> BoneMesh:
+def run_segment(path: str | Path, out_mesh: str | Path, settings: Settings) -> BoneMesh:
     """``bonecad segment``: the tibia's surface from a CT volume, written as a mesh file (STL, PLY, OBJ, OFF)."""
     out_mesh = Path(out_mesh)
     if out_mesh.suffix.lower() not in (".stl", ".ply", ".obj", ".off"):
         raise InputError(f"unsupported mesh format '{out_mesh.suffix}' (use .stl, .ply, .obj or .off)", out_mesh)
-    bone = segment_ct(path)
+    bone = segment_ct(path, settings)
     with staged_file(out_mesh) as tmp:
         bone.to_trimesh().export(tmp, file_type=out_mesh.suffix[1:].lower())
     return bone
@@ -158,7 +167,7 @@ def reconstruct_bone(
 ) -> Reconstruction:
     """Run the stages from the frame up to ``until`` and write their files into ``out_dir``.
 
-    frame: frame.json and curves.step (the reference entities);
+    frame: frame.json and curves.step (the reference entities), and bone.stl for a mesh segmented from a CT;
     curves: also the contour curves in curves.step, curves.iges, curves.json and curves.png;
     models: also each model of ``settings.pipeline.models`` (nurbs.*, tspline.*), its
     analysis figures, report.json and report.html.
@@ -174,6 +183,8 @@ def reconstruct_bone(
     ex = executor if executor is not None else executor_for(settings.pipeline.background_jobs)
     out_dir = Path(out_dir)
     with staged_output(out_dir) as stage_dir, ex:
+        if bone.segmented:
+            export("bone", bone, stage_dir)
         if until == "frame":
             with timings.stage("anatomical frame"):
                 frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
