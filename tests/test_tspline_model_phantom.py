@@ -100,7 +100,7 @@ def test_write_tspline_round_trips(model, tmp_path):
     from bonecad.occ.exchange import read_step
 
     paths = export("tspline", model, tmp_path)
-    assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json"}
+    assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json", "tspline.tsm"}
     back = read_step(paths["step"])
     solids = back.solids()
     assert len(solids) == 1 and is_valid(solids[0].wrapped)
@@ -187,3 +187,15 @@ def test_model_pickles_with_its_solid_and_face_names(model):
     assert is_valid(back.shape) and volume_mm3(back.shape) == pytest.approx(volume_mm3(model.shape), rel=1e-12)
     np.testing.assert_array_equal(back.tspline.control_points, model.tspline.control_points)
     assert back.summary() == model.summary()
+
+
+def test_tsm_cage_is_sound_and_round_trips(model, tmp_path):
+    from tests.tsm_checks import assert_model_cage
+
+    assert_model_cage(model, tmp_path)
+
+
+def test_open_patch_in_the_rhino_convention_matches_the_tspline(model):
+    from tests.tsm_checks import assert_open_patch
+
+    assert_open_patch(model.tspline)

@@ -70,7 +70,7 @@ def open_region(ts: TSpline, s_range: tuple[float, float], t_range: tuple[float,
     scale = max(np.ptp(mesh.s_lines), np.ptp(mesh.t_lines), mesh.s_period or 0.0)
     tol = 1e-9 * scale
     s_a, s_b = s_range
-    if mesh.periodic:
+    if mesh.s_period is not None:
         if not 0 < s_b - s_a < mesh.s_period:
             raise ValueError(f"s range [{s_a}, {s_b}]: expected 0 < s_b - s_a < the period {mesh.s_period}")
         s_n = mesh.shape[0]

@@ -180,7 +180,12 @@ def _parse(text: str) -> TSMDocument:
         raise TSMError(1, f"expected the header {HEADER_LINE!r}, got {got!r}")
     header: list[tuple[str, str]] = []
     footer: list[tuple[str, str]] = []
-    faces, edges, verts, links, conds, grips = [], [], [], [], [], []
+    faces: list[tuple[int, int] | None] = []
+    edges: list[tuple[int, float] | None] = []
+    verts: list[tuple[int, int] | None] = []
+    links: list[tuple[int, ...] | None] = []
+    conds: list[tuple[int, int]] = []
+    grips: list[tuple[float, ...]] = []
     lines: dict[str, list[int]] = {"f": [], "e": [], "v": [], "l": [], "ec": [], "0g": [], "0m": []}
     owner: list[int] = []
     primary: list[bool] = []
@@ -203,7 +208,14 @@ def _parse(text: str) -> TSMDocument:
                                    f"got {key!r}")
         if key in ("f", "e", "v", "l") and len(tokens) == 1:  # deleted slot
             lines[key].append(number)
-            {"f": faces, "e": edges, "v": verts, "l": links}[key].append(None)
+            if key == "f":
+                faces.append(None)
+            elif key == "e":
+                edges.append(None)
+            elif key == "v":
+                verts.append(None)
+            else:
+                links.append(None)
             continue
         if key == "f":
             a, b = _fields(tokens, 2, number, "face: link flag")
@@ -561,7 +573,12 @@ def from_faces(
     Boundary links (face -1) close every open side; edges are numbered in order of their
     first link, like Fusion does; each vertex's link is its first outgoing link.
     """
-    prev, nxt, origin, face, flag, direc = [], [], [], [], [], []
+    prev: list[int] = []
+    nxt: list[int] = []
+    origin: list[int] = []
+    face: list[int] = []
+    flag: list[int] = []
+    direc: list[int] = []
     for f, (loop, corner, dirs) in enumerate(zip(loops, corners, directions)):
         base = len(origin)
         n = len(loop)
@@ -573,14 +590,12 @@ def from_faces(
             flag.append(0 if corner[k] else 1)
             direc.append(dirs[k])
     n_face_links = len(origin)
-    head = {origin[i]: [] for i in range(n_face_links)}
     by_pair: dict[tuple[int, int], int] = {}
     for i in range(n_face_links):
         pair = (origin[i], origin[nxt[i]])
         if pair in by_pair:
             raise ValueError(f"the directed edge {pair} appears in two faces (inconsistent orientation)")
         by_pair[pair] = i
-        head[origin[i]].append(i)
     opp = [-1] * n_face_links
     boundary = []
     for i in range(n_face_links):
@@ -703,7 +718,7 @@ def _mesh_document(s_edges, t_edges, periodic, s_values, t_values, grips_of, *, 
         loops.append(loop)
         corners.append(corner)
         dirs.append([d for _, ds in sides for d in ds])
-        for k, (i, j) in enumerate(pts):
+        for k in range(len(pts)):
             a, b = pts[k], pts[(k + 1) % len(pts)]
             va, vb = loop[k], loop[(k + 1) % len(pts)]
             value = abs(s_values(b[0]) - s_values(a[0])) if a[1] == b[1] else abs(t_values[b[1]] - t_values[a[1]])
@@ -734,7 +749,7 @@ def rhino_document(ts: TSpline, *, unit_mm: float = 1.0) -> TSMDocument:
     t_edges = mesh.t_edges[s_sl, t_sl.start: t_sl.stop - 1]
     s0, t0 = s_sl.start, t_sl.start
     anchor_id = {(int(i), int(j)): k for k, (i, j) in enumerate(mesh.anchors)}
-    owner, primary, compound = [], [], []
+    compound = []
     blocks: dict[int, list[int]] = {}
 
     def grips_of(vertices: np.ndarray) -> np.ndarray:
