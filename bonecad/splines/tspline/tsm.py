@@ -23,7 +23,7 @@ and ``to_tspline`` convert between bonecad T-splines and the Rhino convention
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -735,12 +735,10 @@ def _vertex_lines(mesh: TMesh) -> tuple[slice, slice]:
     return (slice(0, s_n) if mesh.periodic else slice(e, s_n - e)), slice(e, t_n - e)
 
 
-def rhino_document(ts: TSpline, *, unit_mm: float = 1.0) -> TSMDocument:
+def rhino_document(ts: TSpline) -> TSMDocument:
     """The T-spline in the Rhino convention: clamped boundaries written with
     ``force-bezier-end-conditions 1`` and the grip map (each boundary vertex's primary grip is its
-    end control point, its secondary grips the second control rows), grips in anchor order.
-
-    unit_mm : millimetres per written coordinate (the ``units`` line says millimetres for 1).
+    end control point, its secondary grips the second control rows), grips in anchor order, mm.
     """
     mesh = ts.mesh
     s_sl, t_sl = _vertex_lines(mesh)
@@ -772,13 +770,8 @@ def rhino_document(ts: TSpline, *, unit_mm: float = 1.0) -> TSMDocument:
     if sorted(a for anchors in blocks.values() for a in anchors) != list(range(ts.n_control)):
         raise ValueError("the T-mesh's anchors do not map one to one onto TSM vertices and their grip blocks")
     cg = tuple((v, d, tuple(blocks[v][1:])) for v, d in compound if any(d))
-    grips = np.hstack([ts.control_points / unit_mm, ts.weights[:, None]])
-    from dataclasses import replace
-    out = replace(doc, grips=grips, grip_owner=grip_vertex, grip_primary=is_primary, compound=cg, grip_map=True)
-    if unit_mm != 1.0:
-        units = {v: k for k, v in _UNIT_MM.items()}[unit_mm]
-        out = replace(out, header=tuple((k, f"0.001 {units}" if k == "units" else v) for k, v in out.header))
-    return out
+    grips = np.hstack([ts.control_points, ts.weights[:, None]])
+    return replace(doc, grips=grips, grip_owner=grip_vertex, grip_primary=is_primary, compound=cg, grip_map=True)
 
 
 def _wedges(d) -> list[tuple[int, int]]:
@@ -800,8 +793,7 @@ def _link_directions(doc: TSMDocument, loops: dict[int, list[int]]) -> np.ndarra
     side_of = np.full(len(lk), -1, dtype=np.int64)
     for loop in loops.values():
         k = 0
-        start = loop.index(loop[0])
-        for link in loop[start:]:
+        for link in loop:
             if lk[link, 6] == 0 and link != loop[0]:
                 k += 1
             side_of[link] = k
@@ -973,7 +965,6 @@ def to_tspline(doc: TSMDocument) -> TSpline:
         if len(grips) != len(offsets[vertex]) - 1:
             raise TSMError(0, f"compound grip of vertex {vertex}: {len(grips)} grips for rows {d_local}")
     primary = {int(v): g for g, v in enumerate(doc.grip_owner) if doc.grip_primary[g]}
-    listed = {g for _, _, grips in doc.compound for g in grips}
     for v in live.tolist():
         i, j = vi[v], vj[v]
         i_out = i if periodic or e < i < s_n - END_LINES else (i - 1 if i == e else i + 1)
@@ -985,8 +976,7 @@ def to_tspline(doc: TSMDocument) -> TSpline:
                 raise TSMError(doc.line_of("0g", g), f"grip {g} of vertex {v} lands on no control point of the "
                                                      "clamped T-mesh")
             grip_anchor[g] = anchor_id[key]
-    unplaced = [g for g in range(len(doc.grips)) if grip_anchor[g] < 0 and (doc.grip_primary[g] or g in listed)]
-    if unplaced or np.any(grip_anchor < 0) or len(set(grip_anchor.tolist())) != len(mesh.anchors):
+    if np.any(grip_anchor < 0) or len(set(grip_anchor.tolist())) != len(mesh.anchors):
         raise TSMError(0, f"the grip map does not give each of the {len(mesh.anchors)} control points of the "
                           f"clamped T-mesh exactly one of the {len(doc.grips)} grips")
     points = np.empty((len(mesh.anchors), 3))
