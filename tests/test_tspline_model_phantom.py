@@ -199,3 +199,18 @@ def test_open_patch_in_the_rhino_convention_matches_the_tspline(model):
     from tests.tsm_checks import assert_open_patch
 
     assert_open_patch(model.tspline)
+
+
+def test_tsm_cage_of_a_mirrored_model_is_turned_outward(model):
+    """A left-handed frame mirrors the tube: the cage's loops are reversed so its faces still face out."""
+    from bonecad.splines.tspline import tsm
+    from bonecad.tspline_model.cage import fusion_cage
+
+    def mirrored(ts):
+        return ts.with_control_points(ts.control_points * np.array([-1.0, 1.0, 1.0]), ts.weights)
+
+    straight = tsm.census(fusion_cage(model.tspline, *(c.tspline for c in model.caps)))
+    doc = fusion_cage(mirrored(model.tspline), *(mirrored(c.tspline) for c in model.caps))
+    info = tsm.census(tsm.parse(tsm.format_document(doc)))
+    assert (info.euler, info.boundary_loops, len(info.star_points)) == (2, 0, 8)
+    assert info.signed_volume == pytest.approx(straight.signed_volume, rel=1e-12) and info.signed_volume > 0
