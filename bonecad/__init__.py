@@ -6,6 +6,8 @@ to the shipped ones (``Settings.load()``, from ``data/defaults.toml``)::
     bone = bonecad.load_bone("tibia.stl")          # BoneMesh (mm)
     frame = bonecad.anatomical_frame(bone)         # AnatomicalFrame
     result = bonecad.reconstruct("tibia.stl", "out")
+    ts = bonecad.tspline.read_tspline("patch.tsm")  # .tsm <-> T-spline (bonecad.splines.tspline)
+    bonecad.write_tsm(result.models["tspline"], "bone.tsm")  # the model as one closed Fusion cage
 """
 from __future__ import annotations
 
@@ -43,6 +45,8 @@ __all__ = [
     "load_bone",
     "phantom_tibia",
     "reconstruct",
+    "tspline",
+    "write_tsm",
 ]
 
 
@@ -66,7 +70,20 @@ def phantom_tibia(params: TibiaParameters | None = None, settings: Settings | No
     return _phantom.phantom_tibia(params or _phantom.TibiaParameters(), settings=s.mesh, plausible=s.units)
 
 
+def write_tsm(model, path: str | Path) -> Path:
+    """Write a ``TSplineModel`` as one closed T-spline cage for Autodesk Fusion (``.tsm``, scanner
+    coordinates in cm; see ``bonecad.tspline_model.cage``)."""
+    from bonecad.splines.tspline import tsm
+    from bonecad.tspline_model.cage import model_cage
+
+    return tsm.write(model_cage(model), path)
+
+
 def __getattr__(name: str):
+    if name == "tspline":  # the T-spline library: T-mesh, evaluation, refinement, .tsm read/write
+        import bonecad.splines.tspline as tspline
+
+        return tspline
     if name == "TibiaParameters":  # the CT stack (scipy.ndimage) is not imported for a mesh
         from bonecad.imaging.phantom_tibia import TibiaParameters
 

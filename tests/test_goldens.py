@@ -60,13 +60,18 @@ def test_nurbs_histogram_matches_golden(stem):
         assert_histogram_matches(histogram, f"nurbs_{stem}_{region}", tolerance=TOLERANCE)
 
 
-def test_tspline_histogram_matches_golden():
+def test_tspline_histogram_matches_golden(tmp_path):
     from bonecad.tspline_model.model import build_tspline_model
+    from tests.tsm_checks import assert_model_cage, assert_open_patch
 
     stem = REFERENCES[0]
     bone, frame, contours = _reference(stem)
-    shape = build_tspline_model(bone, frame, contours, settings=SETTINGS.tspline,
-                                apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm).shape
+    model = build_tspline_model(bone, frame, contours, settings=SETTINGS.tspline,
+                                apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
+    shape = model.shape
+    # the same real tibia's model as .tsm: the closed Fusion cage, and an open patch in Rhino's convention
+    assert_model_cage(model, tmp_path)
+    assert_open_patch(model.tspline)
     deviation = shape_deviation(bone.vertices, bone.faces, tessellate(shape, TESSELLATION),
                                 regions=region_labels(frame), edges_mm=BANDS_MM, sample_points=SAMPLES)
     assert_histogram_matches(deviation.mesh_to_cad.histogram, f"tspline_{stem}", tolerance=TOLERANCE)

@@ -100,7 +100,7 @@ def test_write_tspline_round_trips(model, tmp_path):
     from bonecad.occ.exchange import read_step
 
     paths = export("tspline", model, tmp_path)
-    assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json"}
+    assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json", "tspline.tsm"}
     back = read_step(paths["step"])
     solids = back.solids()
     assert len(solids) == 1 and is_valid(solids[0].wrapped)
@@ -187,3 +187,30 @@ def test_model_pickles_with_its_solid_and_face_names(model):
     assert is_valid(back.shape) and volume_mm3(back.shape) == pytest.approx(volume_mm3(model.shape), rel=1e-12)
     np.testing.assert_array_equal(back.tspline.control_points, model.tspline.control_points)
     assert back.summary() == model.summary()
+
+
+def test_tsm_cage_is_sound_and_round_trips(model, tmp_path):
+    from tests.tsm_checks import assert_model_cage
+
+    assert_model_cage(model, tmp_path)
+
+
+def test_open_patch_in_the_rhino_convention_matches_the_tspline(model):
+    from tests.tsm_checks import assert_open_patch
+
+    assert_open_patch(model.tspline)
+
+
+def test_tsm_cage_of_a_mirrored_model_is_turned_outward(model):
+    """A left-handed frame mirrors the tube: the cage's loops are reversed so its faces still face out."""
+    from bonecad.splines.tspline import tsm
+    from bonecad.tspline_model.cage import fusion_cage
+
+    def mirrored(ts):
+        return ts.with_control_points(ts.control_points * np.array([-1.0, 1.0, 1.0]), ts.weights)
+
+    straight = tsm.census(fusion_cage(model.tspline, *(c.tspline for c in model.caps)))
+    doc = fusion_cage(mirrored(model.tspline), *(mirrored(c.tspline) for c in model.caps))
+    info = tsm.census(tsm.parse(tsm.format_document(doc)))
+    assert (info.euler, info.boundary_loops, len(info.star_points)) == (2, 0, 8)
+    assert info.signed_volume == pytest.approx(straight.signed_volume, rel=1e-12) and info.signed_volume > 0

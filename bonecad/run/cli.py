@@ -95,7 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("reconstruct", help="mesh or CT -> NURBS and T-spline CAD models, analysis, report",
                        description="The whole pipeline: frame, contour curves, the NURBS baseline and/or the "
                        "T-spline model, their deviation/continuity/zebra analysis. Writes nurbs.step/.iges, "
-                       "tspline.step/.iges/.json, curves.step/.iges/.json, frame.json, report.json, report.html "
+                       "tspline.step/.iges/.json/.tsm, curves.step/.iges/.json, frame.json, report.json, report.html "
                        "and PNG figures into --out.")
     _add_stage(p)
     p.add_argument("--model", choices=["nurbs", "tspline", "both"], default=None,
@@ -112,6 +112,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("ct", type=Path, help="DICOM folder or volume file")
     p.add_argument("--out", type=Path, required=True, help="mesh file to write (.stl, .ply, .obj, .off)")
     _add_common(p)
+
+    p = sub.add_parser("convert", help="a .tsm T-spline (Rhino convention, no star points) -> tspline.step",
+                       description="Read a #TS0200 .tsm file, check its structure (a malformed file exits 2 "
+                       "naming the line and the problem), evaluate it with bonecad's T-spline rules (clamped "
+                       "boundaries through the Rhino grip map; no star points) and write tspline.step into --out.")
+    p.add_argument("input", type=Path, help=".tsm file")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("-v", "--verbose", action="store_true", help="log every step (debug)")
+    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
 
     p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
                        description="Generate the synthetic phantom tibia and run every stage available on it; "
@@ -181,6 +190,12 @@ def settings_of(args: argparse.Namespace):
 def _run(args: argparse.Namespace) -> None:
     from bonecad.run import pipeline
 
+    if args.command == "convert":
+        from bonecad.run.convert import convert_tsm
+
+        ts, step = convert_tsm(args.input, args.out)
+        print(f"{ts.n_control} control points, {ts.extraction.n_elements} Bezier elements: {step}")
+        return
     settings = settings_of(args)
     if args.command == "inspect":
         summary = pipeline.inspect(args.mesh, settings, units=args.units)
