@@ -20,8 +20,8 @@ import numpy as np
 from .conftest import TIBIA_DIR
 
 SOURCE = TIBIA_DIR / "TLEM2_CT_tibia_r.stl"
-BUMPS, BUMP_RADIUS_MM, MAX_BUMP_MM = 400, (3.0, 6.0), 1.0
-FACES = 12000
+BUMPS, BUMP_RADIUS_MM, MAX_BUMP_MM = 3000, (1.5, 3.0), 1.0
+FACES = 24000
 
 
 @dataclass(frozen=True)
