@@ -166,7 +166,9 @@ def check_not_fused(
         (areas[1] if len(areas) > 1 else 0.0) for areas in (_loop_areas(stack.at(float(h))) for h in levels)
     ])
     beside = levels[second >= settings.fused_second_loop_mm2]
-    if len(beside) and (beside.max() - beside.min()) >= settings.fused_loop_stretch_share * length:
+    # the sections showing it must cover the share themselves: a malleolus cut off by the plafond's curve near
+    # one end and the spines of the plateau near the other span the length but cover little of it
+    if len(beside) >= settings.fused_loop_stretch_share * len(levels):
         a, b = beside.min() - bottom, beside.max() - bottom
         raise InputError(
             f"the tibia is fused to its fibula: sections across its axis show the fibula beside it from "
