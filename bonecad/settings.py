@@ -70,7 +70,8 @@ class AnatomySettings:
 @dataclass(frozen=True)
 class CurvesSettings:
     """Contour curves: half-plane angles (degrees from lateral towards anterior), control points,
-    tolerances (mm), shaft section spacing (mm), apex hole radius (mm)."""
+    tolerances (mm), shaft section spacing (mm), apex hole radius (mm), the stiffer refit of a curve that
+    overshoots (mm; fairness weight)."""
 
     distal_angles_deg: tuple[float, ...]
     proximal_angles_deg: tuple[float, ...]
@@ -84,6 +85,8 @@ class CurvesSettings:
     shaft_sections: int
     shaft_min_spacing_mm: float
     apex_hole_radius_mm: float
+    stiff_refit_above_mm: float
+    stiff_refit_fairness: float
 
 
 @dataclass(frozen=True)

@@ -1,11 +1,11 @@
 """A rough segmentation made from a real tibia, with the clean surface it came from known.
 
 TLEM2's CT tibia (1 mm edges) gets smooth random bumps: Gaussian bumps of
-3-6 mm radius at 400 random places of the surface, summed and scaled so the
-largest displacement along the normal is 1 mm (RMS about 0.2 mm), then a
-coarse quadric decimation (``fast_simplification`` through trimesh) to
-about 2 mm edges, which on the nearly straight shaft leaves long slivers
-along the axis. Deterministic (fixed seeds).
+1.5-3 mm radius (about a clinical MRI's voxel) at 3000 random places of the
+surface, summed and scaled so the largest displacement along the normal is
+1 mm, then a coarse quadric decimation (``fast_simplification`` through
+trimesh) to about 1.8 mm edges, which on the nearly straight shaft leaves
+slivers along the axis (up to 13 mm). Deterministic (fixed seeds).
 
 ``python -m tests.rough OUT.stl`` writes the mesh.
 """
@@ -34,18 +34,19 @@ class RoughMesh:
     max_edge_mm: float
 
 
-def build_rough(source: Path = SOURCE, faces: int = FACES, seed: int = 0) -> RoughMesh:
+def build_rough(source: Path = SOURCE, faces: int = FACES, seed: int = 0, bumps: int = BUMPS,
+                bump_radius_mm: tuple[float, float] = BUMP_RADIUS_MM) -> RoughMesh:
     import trimesh
     from scipy.spatial import cKDTree
 
     clean = max(trimesh.load(source, force="mesh").split(only_watertight=False), key=lambda b: abs(b.volume))
     rng = np.random.default_rng(seed)
-    centres, _ = trimesh.sample.sample_surface(clean, BUMPS, seed=seed + 1)
-    sign = rng.choice([-1.0, 1.0], BUMPS)
-    amplitude = rng.uniform(0.5, 1.0, BUMPS) * sign
-    radius = rng.uniform(*BUMP_RADIUS_MM, BUMPS)
+    centres, _ = trimesh.sample.sample_surface(clean, bumps, seed=seed + 1)
+    sign = rng.choice([-1.0, 1.0], bumps)
+    amplitude = rng.uniform(0.5, 1.0, bumps) * sign
+    radius = rng.uniform(*bump_radius_mm, bumps)
     # sum of Gaussian bumps at every vertex: (vertex, bump) pairs within 3 radii
-    pairs = cKDTree(centres).sparse_distance_matrix(cKDTree(clean.vertices), 3 * max(BUMP_RADIUS_MM),
+    pairs = cKDTree(centres).sparse_distance_matrix(cKDTree(clean.vertices), 3 * max(bump_radius_mm),
                                                     output_type="coo_matrix")
     bump, vertex, distance = pairs.row, pairs.col, pairs.data
     field = np.bincount(vertex, weights=amplitude[bump] * np.exp(-0.5 * (distance / radius[bump]) ** 2),

@@ -26,7 +26,7 @@ from bonecad.errors import FitError
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.settings import CurvesSettings
 from bonecad.mesh.sections import LevelSections, section_mesh
-from bonecad.splines.curve import BSplineCurve, fit_curve
+from bonecad.splines.curve import BSplineCurve, CurveFit, fit_curve
 
 REGIONS = ("distal", "shaft", "proximal")
 EndRegion = Literal["distal", "proximal"]
@@ -291,6 +291,29 @@ def _proximal_axis(frame: AnatomicalFrame) -> tuple[np.ndarray, np.ndarray]:
     return local_bone, local_dir / np.linalg.norm(local_dir)
 
 
+def fit_section(raw: np.ndarray, count: int, *, periodic: bool, settings: CurvesSettings, notes: list[str]
+                ) -> CurveFit:
+    """The contour curve of one section polyline (mm), its repairs appended to ``notes``.
+
+    A curve that misses its section by more than ``settings.stiff_refit_above_mm``
+    has overshot where the section's points are sparse (a coarse or rough mesh:
+    a control point with no data near it swings out, and the outlier test then
+    drops real points); it is fitted again with the stiffer
+    ``settings.stiff_refit_fairness``, which bridges such spans, and the closer
+    of the two is kept.
+    """
+    fit = fit_curve(raw, count, periodic=periodic, degree=settings.degree)
+    if fit.max_deviation_mm > settings.stiff_refit_above_mm:
+        stiff = fit_curve(raw, count, periodic=periodic, degree=settings.degree, fairness=settings.stiff_refit_fairness)
+        if stiff.max_deviation_mm < fit.max_deviation_mm:
+            notes.append(f"refitted stiffer: the first fit overshot by {fit.max_deviation_mm:.1f} mm where the "
+                         f"section's points are sparse")
+            fit = stiff
+    if fit.outliers:
+        notes.append(f"bridged {fit.outliers} outlying section point(s) (peaks from holes or artefacts)")
+    return fit
+
+
 def end_curves(bone: BoneMesh, frame: AnatomicalFrame, region: EndRegion, *,
                settings: CurvesSettings) -> tuple[ContourCurve, ...]:
     """The half-plane curves of one end region (bone coordinates): distal ones about the mechanical
@@ -309,9 +332,7 @@ def end_curves(bone: BoneMesh, frame: AnatomicalFrame, region: EndRegion, *,
     for i, angle in enumerate(angles):
         raw, notes = half_plane_polyline(vertices, faces, axis_point, axis_dir, x_axis, float(angle),
                                          boundary, towards, settings.apex_hole_radius_mm)
-        fit = fit_curve(raw, count, periodic=False, degree=settings.degree)
-        if fit.outliers:
-            notes.append(f"bridged {fit.outliers} outlying section point(s) (peaks from holes or artefacts)")
+        fit = fit_section(raw, count, periodic=False, settings=settings, notes=notes)
         curves.append(ContourCurve(region, i, fit.curve, raw, tol, fit.max_deviation_mm,
                                    fit.rms_deviation_mm, angle_deg=float(angle), repairs=tuple(notes)))
     return tuple(curves)
@@ -339,9 +360,7 @@ def shaft_curves(bone: BoneMesh, frame: AnatomicalFrame, *, settings: CurvesSett
     shaft = []
     for i, level in enumerate(levels):
         raw, notes = _closed_section(stack, float(level), centre_at(level))
-        fit = fit_curve(raw, count, periodic=True, degree=settings.degree)
-        if fit.outliers:
-            notes.append(f"bridged {fit.outliers} outlying section point(s) (peaks from holes or artefacts)")
+        fit = fit_section(raw, count, periodic=True, settings=settings, notes=notes)
         shaft.append(ContourCurve("shaft", i, fit.curve, raw, tol, fit.max_deviation_mm,
                                   fit.rms_deviation_mm, level_mm=float(level), repairs=tuple(notes)))
     return ShaftCurves(tuple(shaft), float(predicted), float(worst))
