@@ -21,10 +21,10 @@ SCRIPT = """
 import json, os, Part
 shape = Part.read(os.environ["BONECAD_STEP"])
 solids = shape.Solids
-print("%s" + json.dumps({"version": ".".join(App.Version()[:3]), "solids": len(solids),
+print(os.environ["BONECAD_MARKER"] + json.dumps({"version": ".".join(App.Version()[:3]), "solids": len(solids),
     "valid": [s.isValid() for s in solids], "closed": [s.isClosed() for s in solids],
     "volumes_mm3": [s.Volume for s in solids], "faces": len(shape.Faces)}))
-""" % MARKER
+"""
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ def freecad_check(step: Path, *, timeout_s: float = 300.0) -> FreecadVerdict:
     command = freecad_command()
     if command is None:
         raise RuntimeError("FreeCAD is not installed (freecadcmd not on PATH)")
-    env = dict(os.environ, BONECAD_STEP=str(step), QT_QPA_PLATFORM="offscreen")
+    env = dict(os.environ, BONECAD_STEP=str(step), BONECAD_MARKER=MARKER, QT_QPA_PLATFORM="offscreen")
     done = subprocess.run([command, "-c", SCRIPT], capture_output=True, text=True, env=env, timeout=timeout_s)
     lines = [line for line in done.stdout.splitlines() if line.startswith(MARKER)]
     if done.returncode != 0 or len(lines) != 1:

@@ -214,11 +214,11 @@ def chord_mm(shape: TopoDS_Shape, point: np.ndarray, direction: np.ndarray) -> f
     """Length of the line through ``point`` along ``direction`` inside the solid (sum of its in-segments)."""
     inter = BRepIntCurveSurface_Inter()
     inter.Init(shape, gp_Lin(gp_Pnt(*point), gp_Dir(*direction)), 1e-7)
-    params = []
+    found = []
     while inter.More():
-        params.append(inter.W())
+        found.append(inter.W())
         inter.Next()
-    params = np.unique(np.round(params, 9))
+    params = np.unique(np.round(found, 9))
     if len(params) % 2:
         raise KernelError(f"the drill axis crosses the surface {len(params)} times (odd: not through a solid)")
     return float(np.sum(params[1::2] - params[0::2]))

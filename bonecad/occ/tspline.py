@@ -105,7 +105,7 @@ def bspline_face(ts: TSpline, *, tolerance_mm: float = 1e-7) -> TopoDS_Face:
     """A tensor-product T-spline as one face on its whole B-spline surface (:func:`bspline_surface`)."""
     maker = BRepBuilderAPI_MakeFace(bspline_surface(ts), tolerance_mm)
     if not maker.IsDone():
-        raise KernelError(f"OpenCascade could not make a face of a {ts.n_control}-pole B-spline (error {maker.Error()})")
+        raise KernelError(f"OpenCascade could not make a face of {ts.n_control} poles (error {maker.Error()})")
     return maker.Face()
 
 

@@ -373,7 +373,7 @@ def patch_region(settings: Settings, name: str | None, height_mm: tuple[float, f
         return PatchRegion(name, (h0, h1), (a0, a1))
     if height_mm is None or angle_deg is None:
         raise InputError("give --region NAME, or both --height FROM TO and --angle FROM TO")
-    return PatchRegion("patch", tuple(height_mm), tuple(angle_deg))
+    return PatchRegion("patch", (height_mm[0], height_mm[1]), (angle_deg[0], angle_deg[1]))
 
 
 def _model_folder(folder: Path, mesh: Path | None, settings: Settings):

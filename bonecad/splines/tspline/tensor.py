@@ -129,7 +129,7 @@ def region_patch(ts: TSpline, s_range: tuple[float, float], t_range: tuple[float
     lo_t, hi_t = mesh.t_range
     if not (lo_t <= t0 < t1 <= hi_t):
         raise ValueError(f"t range [{t0}, {t1}] is not an interval inside [{lo_t}, {hi_t}]")
-    if mesh.periodic:
+    if mesh.s_period is not None:
         if not (s0 < s1 and s1 - s0 < mesh.s_period):
             raise ValueError(f"s range [{s0}, {s1}] must be increasing and shorter than the period {mesh.s_period}")
         turns = np.arange(np.floor((s0 - mesh.s_lines[0]) / mesh.s_period) - 1,
