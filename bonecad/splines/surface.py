@@ -431,6 +431,7 @@ def interpolate_clamped(values: np.ndarray, params: np.ndarray, degree: int = 3,
     rhs = np.vstack([flat[:1], np.reshape(end_derivatives[0], (1, -1)), flat[1:-1],
                      np.reshape(end_derivatives[1], (1, -1)), flat[-1:]])
     poles = solve_dense(matrix, rhs, max_condition=_MAX_CONDITION, what="clamped interpolation with end derivatives")
+    poles[[0, -1]] = flat[[0, -1]]  # a clamped end is its value: exactly, not to rounding
     return poles.reshape((count, *values.shape[1:])), knots
 
 
