@@ -388,7 +388,11 @@ def _model_folder(folder: Path, mesh: Path | None, settings: Settings):
         frame = json.loads((folder / "frame.json").read_text())
         tube = from_dict(model["tube"])
         bone_frame = frame["bone_frame"]
-        axes = np.array([bone_frame["lateral"], bone_frame["anterior"], bone_frame["proximal"]], dtype=np.float64)
+        rounded = np.array([bone_frame["lateral"], bone_frame["anterior"], bone_frame["proximal"]], dtype=np.float64)
+        # frame.json rounds to 1e-6: the nearest orthogonal axes, so that mapping the tube to bone
+        # coordinates and the patch back is exact (rounded axes would move it by ~1e-5 mm)
+        left, _, right = np.linalg.svd(rounded)
+        axes = left @ right
         origin = np.array(bone_frame["origin"], dtype=np.float64)
         source = Path(mesh or frame["input"]["file"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
