@@ -25,6 +25,8 @@ else:  # pragma: no cover
 from bonecad.errors import InputError
 
 ApexFill = Literal["ring", "patch"]
+Joins = Literal["G1", "C0"]
+FaceLayout = Literal["tube", "blocks", "elements"]
 ModelName = Literal["nurbs", "tspline"]
 
 
@@ -91,9 +93,10 @@ class CurvesSettings:
 
 @dataclass(frozen=True)
 class NurbsSettings:
-    """NURBS baseline: how the apex holes are filled, sewing tolerance (mm)."""
+    """NURBS baseline: how the apex holes are filled, how the segments join (G1 or C0), sewing tolerance (mm)."""
 
     apex_fill: ApexFill
+    joins: Joins
     sewing_tolerance_mm: float
 
 
@@ -120,6 +123,7 @@ class TSplineSettings:
     noise_neighbours: int
     noise_factor: float
     compare_tensor_product: bool
+    face_layout: FaceLayout
 
 
 @dataclass(frozen=True)
@@ -148,6 +152,18 @@ class AnalysisSettings:
 
 
 @dataclass(frozen=True)
+class PatchSettings:
+    """``bonecad patch``: named regions (height from, to in mm above the plafond centre; angle from, to in
+    degrees from lateral towards anterior), the patch's samples for its deviation from the mesh (per
+    direction), and the plate blank it must thicken into (mm)."""
+
+    anteromedial_distal_tibia: tuple[float, float, float, float]
+    anterolateral_distal_tibia: tuple[float, float, float, float]
+    mesh_samples: int
+    plate_thickness_mm: float
+
+
+@dataclass(frozen=True)
 class PipelineSettings:
     """The runner: which models to build, whether independent stages run on the second core."""
 
@@ -166,6 +182,7 @@ class Settings:
     nurbs: NurbsSettings
     tspline: TSplineSettings
     analysis: AnalysisSettings
+    patch: PatchSettings
     pipeline: PipelineSettings
 
     @classmethod

@@ -167,7 +167,7 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
         assert np.abs(got - want).max() < 1e-6
     # and enclose the volume of the one-face-per-element solid
     volumes = []
-    split = _occ_shape(model.tspline, model.caps, model.parameterisation, model.frame, merge=False)[0]
+    split = _occ_shape(model.tspline, model.caps, model.parameterisation, model.frame, layout="elements")[0]
     for shape in (model.shape, split):
         props = GProp_GProps()
         BRepGProp.VolumeProperties_s(shape, props, 1e-8)

@@ -6,11 +6,12 @@ from pathlib import Path
 
 from bonecad.contours.curves import ContourSet
 from bonecad.export.registry import exporter
-from bonecad.export.documents import FrameDocument
+from bonecad.export.documents import FrameDocument, PatchDocument
 from bonecad.nurbs_model.model import NurbsModel
 from bonecad.occ import brep
 from bonecad.occ.curves import to_edge
 from bonecad.occ.exchange import frame_entities, write_iges, write_step
+from bonecad.occ.surfaces import make_face
 from bonecad.tspline_model.model import TSplineModel
 
 
@@ -50,3 +51,19 @@ def _register_model_exporter(kind: str, fmt: str) -> None:
 for _kind in ("nurbs", "tspline"):
     for _fmt in ("step", "iges"):
         _register_model_exporter(_kind, _fmt)
+
+
+def _register_patch_exporter(fmt: str) -> None:
+    """``patch.{fmt}``: the footprint as one untrimmed B-spline face named by its region (scanner mm)."""
+    write = brep.write_named_step if fmt == "step" else brep.write_named_iges
+
+    @exporter("patch", fmt)
+    def patch_file(doc: PatchDocument, out_dir: Path) -> Path:
+        face = make_face(doc.surface)
+        name = doc.footprint.region.name
+        # the face is the whole shape: STEP names its ADVANCED_FACE, IGES the shape's label
+        return write(face, out_dir / f"patch.{fmt}", name, [(name, face)] if fmt == "step" else [])
+
+
+for _fmt in ("step", "iges"):
+    _register_patch_exporter(_fmt)

@@ -1,4 +1,4 @@
-"""JSON exporters: frame.json, curves.json and tspline.json (scanner coordinates, mm).
+"""JSON exporters: frame.json, curves.json, tspline.json and patch.json (scanner coordinates, mm).
 
 No timings go into them (report.json has those): the same input gives the same files.
 """
@@ -14,9 +14,11 @@ import numpy as np
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.contours.curves import ContourSet
 from bonecad.export.registry import exporter
+from bonecad.splines.surface import BSplineSurface
 from bonecad.splines.tspline import to_dict
 from bonecad.staging import staged_file
 from bonecad.tspline_model.model import TSplineModel, to_scanner
+from bonecad.tspline_model.patch import Footprint
 
 
 @dataclass(frozen=True)
@@ -89,3 +91,41 @@ def tspline_json(model: TSplineModel, out_dir: Path) -> Path:
         "summary": {key: value for key, value in model.summary().items() if key != "timings_s"},
     }
     return write_json(doc, out_dir / "tspline.json", indent=None)
+
+
+@dataclass(frozen=True)
+class PatchDocument:
+    """``bonecad patch``'s result: the footprint (bone coordinates), the frame's axes (3, 3) and origin (3,)
+    that map it to scanner coordinates, its deviation from the mesh, and the plate blank OpenCascade made
+    of it."""
+
+    footprint: Footprint
+    axes: np.ndarray
+    origin: np.ndarray
+    mesh_deviation: dict
+    plate_blank: dict
+
+    @property
+    def surface(self) -> BSplineSurface:
+        """The patch in scanner coordinates (an affine map of the poles: exact), its normal S_u x S_v
+        out of the bone (v reversed where the frame is mirrored, a left tibia's)."""
+        scanner = self.footprint.surface.transformed(self.axes, self.origin)
+        return scanner.reversed_v() if np.linalg.det(self.axes) < 0 else scanner
+
+
+@exporter("patch", "json")
+def patch_json(doc: PatchDocument, out_dir: Path) -> Path:
+    """patch.json: the region, its parameters and spans, the surface (scanner mm), its deviations, the plate."""
+    surface = doc.surface
+    data = {
+        "format": "bonecad.patch",
+        "version": 1,
+        "units": "mm",
+        "coordinates": "input (scanner) coordinates",
+        **doc.footprint.summary(),
+        "deviation_from_mesh": doc.mesh_deviation,
+        "plate_blank": doc.plate_blank,
+        "surface": {"degree": [surface.degree_u, surface.degree_v], "knots_u": surface.knots_u.tolist(),
+                    "knots_v": surface.knots_v.tolist(), "poles": np.round(surface.poles, 9).tolist()},
+    }
+    return write_json(data, out_dir / "patch.json")

@@ -15,9 +15,19 @@ S_u x S_v points out of the bone on every face.
 - **Shaft**: its first and last sections are replaced by the end surfaces'
   boundary iso-curves (same 28-pole periodic space), then all sections are
   interpolated along the axis (clamped cubic, chord-length parameters), so
-  the shaft meets both ends exactly (C0, identical poles).
+  the shaft meets both ends exactly: C0 (identical poles; the paper's joins),
+  or with ``joins`` "G1" also tangent: the shaft's derivative across each end
+  is the end surface's, scaled (cubic interpolation with end derivatives).
 - **Ring caps**: ruled cones from the apex point on the axis to the apex ring
-  iso-curve (the paper's ring of 28 lines through the apex).
+  iso-curve (the paper's ring of 28 lines through the apex); with "G1" joins
+  a cubic cap instead, tangent to the end surface along the ring (its last
+  pole row the ring, the one before it along the end surface's derivative)
+  and flat at the apex (its second pole row in the plane across the axis).
+
+OpenCascade's offset (BRepOffset_Analyse) refuses a seam whose faces are
+tangent within 0.1 rad at some of its 23 samples and not at others
+(BRepOffset_MixedConnectivity): the C0 joins of a bone, nearly tangent in
+places, do exactly that; G1 joins are tangent everywhere.
 """
 from __future__ import annotations
 
@@ -31,7 +41,9 @@ from bonecad.errors import FitError
 from bonecad.splines.basis import design_matrix
 from bonecad.splines.knots import periodic_knots
 from bonecad.splines.project import project_to_curve
-from bonecad.splines.surface import BSplineSurface, interpolate_clamped, interpolate_periodic
+from bonecad.splines.surface import BSplineSurface, end_derivative, interpolate_clamped, interpolate_periodic
+
+JOINS: tuple[str, ...] = ("G1", "C0")
 
 
 @dataclass(frozen=True)
@@ -193,8 +205,16 @@ def skin_end(curves: list[BSplineCurve], region: str) -> BSplineSurface:
                           periodic_u=True, region=region)
 
 
-def loft_shaft(first: BSplineCurve, middle: list[BSplineCurve], last: BSplineCurve) -> BSplineSurface:
-    """Clamped cubic interpolation along the axis through the sections (all one periodic space)."""
+def loft_shaft(first: BSplineCurve, middle: list[BSplineCurve], last: BSplineCurve, *,
+               end_tangents: tuple[np.ndarray, np.ndarray] | None = None) -> BSplineSurface:
+    """Clamped cubic interpolation along the axis through the sections (all one periodic space).
+
+    end_tangents : pole rows (28, 3) of the directions the shaft must leave its first and
+        enter its last section along (the end surfaces' cross derivatives, any scale);
+        each is scaled so that its mean component along the shaft's chord equals the
+        chord length (the shaft's own speed), which keeps the joins G1 and the
+        parameterisation even.
+    """
     sections = [first, *middle, last]
     counts = {(c.count, c.periodic) for c in sections}
     if len(counts) != 1 or not next(iter(counts))[1]:
@@ -204,7 +224,11 @@ def loft_shaft(first: BSplineCurve, middle: list[BSplineCurve], last: BSplineCur
     chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))])
     if chord[-1] <= 0 or np.any(np.diff(chord) <= 0):
         raise FitError("shaft sections do not advance along the axis")
-    poles, knots = interpolate_clamped(rows, chord / chord[-1])
+    derivatives = None
+    if end_tangents is not None:
+        along = (centres[-1] - centres[0]) / np.linalg.norm(centres[-1] - centres[0])
+        derivatives = tuple(t * chord[-1] / _mean_positive(t @ along, "shaft end tangent") for t in end_tangents)
+    poles, knots = interpolate_clamped(rows, chord / chord[-1], end_derivatives=derivatives)
     return BSplineSurface(poles.transpose(1, 0, 2), first.knots, knots, 3, 3, periodic_u=True, region="shaft")
 
 
@@ -213,6 +237,36 @@ def ring_cap(ring: BSplineCurve, apex: np.ndarray, region: str, *, apex_first: b
     tip = np.broadcast_to(np.asarray(apex, dtype=np.float64), ring.control_points.shape)
     rows = [tip, ring.control_points] if apex_first else [ring.control_points, tip]
     return BSplineSurface(np.stack(rows, axis=1), ring.knots, np.array([0.0, 0.0, 1.0, 1.0]), 3, 1,
+                          periodic_u=True, region=region)
+
+
+def _mean_positive(values: np.ndarray, what: str) -> float:
+    mean = float(np.mean(values))
+    if mean <= 0:
+        raise FitError(f"the {what} points backwards (mean component {mean:.3g})")
+    return mean
+
+
+def tangent_ring_cap(ring: BSplineCurve, outward: np.ndarray, apex: np.ndarray, axis: np.ndarray, region: str, *,
+                     apex_first: bool) -> BSplineSurface:
+    """Cubic cap (in v) from the apex to the ring, tangent along the ring to the surface it closes.
+
+    outward : pole rows (28, 3) of the end surface's derivative at the ring, pointing away
+    from the apex (any scale). Pole rows from the apex: the apex; a third of the way to the
+    ring in the plane across ``axis`` (a flat pole); the ring moved back along ``outward`` by a
+    third of the ring's mean radius; the ring.
+    """
+    ring_poles = ring.control_points
+    axis = axis / np.linalg.norm(axis)
+    radial = ring_poles - apex
+    radial -= np.outer(radial @ axis, axis)
+    radius = float(np.mean(np.linalg.norm(radial, axis=1)))
+    speed = float(np.mean(np.linalg.norm(outward, axis=1)))
+    rows = [np.broadcast_to(apex, ring_poles.shape), apex + radial / 3.0,
+            ring_poles - outward * (radius / 3.0 / speed), ring_poles]
+    if not apex_first:
+        rows = rows[::-1]
+    return BSplineSurface(np.stack(rows, axis=1), ring.knots, np.array([0.0] * 4 + [1.0] * 4), 3, 3,
                           periodic_u=True, region=region)
 
 
@@ -234,6 +288,9 @@ class BoneSurfaces:
     proximal_ring: BSplineCurve
     distal_apex: np.ndarray  # (3,) apex points on the axes (bone mm)
     proximal_apex: np.ndarray
+    distal_outward: np.ndarray  # (28, 3) end surfaces' derivative rows at the apex rings, away from the apex
+    proximal_outward: np.ndarray
+    proximal_axis: np.ndarray  # (3,) unit, from the proximal apex hole out of the bone
     refits: tuple[RefitReport, ...]  # distal, shaft, proximal
     boundary_shift_mm: tuple[float, float]  # how far the end iso-curves lie from the shaft's own end sections
 
@@ -245,8 +302,16 @@ def _curve_distance(a: BSplineCurve, b: BSplineCurve, samples: int = 400) -> flo
     return float(np.linalg.norm(b(u) - pts, axis=1).max())
 
 
-def bone_surfaces(contours: ContourSet) -> BoneSurfaces:
-    """Skin the ends, loft the shaft between their boundary iso-curves (bone coordinates)."""
+def _v_derivative(surface: BSplineSurface, end: int) -> np.ndarray:
+    """Pole rows (nu, 3) of dS/dv along the iso-curve v = 0 (``end`` 0) or 1 of a polynomial surface."""
+    return end_derivative(surface.poles.transpose(1, 0, 2), surface.knots_v, surface.degree_v, end)
+
+
+def bone_surfaces(contours: ContourSet, joins: str = "G1") -> BoneSurfaces:
+    """Skin the ends, loft the shaft between their boundary iso-curves (bone coordinates), C0 or G1
+    (``joins``) to them."""
+    if joins not in JOINS:
+        raise ValueError(f"joins must be one of {JOINS}, got {joins!r}")
     if len(contours.shaft) < 2:
         raise FitError(f"the shaft needs at least 2 sections, got {len(contours.shaft)}")
     distal_curves, distal_report = compatible_curves(contours.distal, "distal")
@@ -262,7 +327,8 @@ def bone_surfaces(contours: ContourSet) -> BoneSurfaces:
     )
     middle = [refit_section(c, mapping) for c in contours.shaft[1:-1]]
     distal_boundary, proximal_boundary = iso_u_curve(distal, 1.0), iso_u_curve(proximal, 0.0)
-    shaft = loft_shaft(distal_boundary, [m[0] for m in middle], proximal_boundary)
+    tangents = (_v_derivative(distal, 1), _v_derivative(proximal, 0)) if joins == "G1" else None
+    shaft = loft_shaft(distal_boundary, [m[0] for m in middle], proximal_boundary, end_tangents=tangents)
     shaft_report = RefitReport(
         region="shaft",
         max_deviation_mm=max([m[1] for m in middle], default=0.0),
@@ -281,6 +347,9 @@ def bone_surfaces(contours: ContourSet) -> BoneSurfaces:
         proximal_ring=proximal_ring,
         distal_apex=apex_on_axis(distal_ring, np.zeros(3), np.array([0.0, 0.0, 1.0])),
         proximal_apex=apex_on_axis(proximal_ring, local[0], local[0] - local[1]),
+        distal_outward=_v_derivative(distal, 0),
+        proximal_outward=-_v_derivative(proximal, 1),
+        proximal_axis=(local[0] - local[1]) / np.linalg.norm(local[0] - local[1]),
         refits=(distal_report, shaft_report, proximal_report),
         boundary_shift_mm=(
             _curve_distance(distal_boundary, contours.shaft[0].curve),

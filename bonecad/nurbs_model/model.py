@@ -19,7 +19,7 @@ from bonecad.occ import brep
 from bonecad.occ.pickling import ShapePickling
 from bonecad.occ import surfaces as occ
 from bonecad.occ.interop import to_build123d
-from bonecad.nurbs_model.loft import BoneSurfaces, RefitReport, bone_surfaces, ring_cap
+from bonecad.nurbs_model.loft import BoneSurfaces, RefitReport, bone_surfaces, ring_cap, tangent_ring_cap
 from bonecad.settings import NurbsSettings
 from bonecad.splines.surface import BSplineSurface
 
@@ -52,6 +52,7 @@ class NurbsModel(ShapePickling):
     shape: object
     face_names: tuple[tuple[str, object], ...]
     apex_fill: str
+    joins: str
     volume_mm3: float
     refits: tuple[RefitReport, ...]
     boundary_gap_mm: tuple[float, float]
@@ -85,6 +86,7 @@ class NurbsModel(ShapePickling):
             "faces": self.faces,
             "control_points": self.control_points,
             "apex_fill": self.apex_fill,
+            "joins": self.joins,
             "volume_mm3": round(self.volume_mm3, 3),
             "surfaces": [s.to_dict() | {"control_points": s.control_points} for s in self.surfaces],
             "compatible_curves": [r.to_dict() for r in self.refits],
@@ -108,8 +110,10 @@ def build_nurbs(contours: ContourSet, *, settings: NurbsSettings) -> NurbsModel:
     ----------
     contours : the three regions' curves (bone coordinates) with their frame
     settings : ``apex_fill`` "ring" (ruled cone from the apex to the ring of curve
-        ends, the paper's ring of 28 lines) or "patch" (fill-hole plate surface,
-        G1 to the end surface); the sewing tolerance (mm)
+        ends, the paper's ring of 28 lines; with G1 joins a cubic cap tangent to the
+        end surface) or "patch" (fill-hole plate surface, G1 to the end surface);
+        ``joins`` "G1" (the shaft tangent to the ends, the caps to the ends: the
+        model offsets in OpenCascade) or "C0" (the paper's); the sewing tolerance (mm)
 
     Raises
     ------
@@ -124,13 +128,13 @@ def build_nurbs(contours: ContourSet, *, settings: NurbsSettings) -> NurbsModel:
     timings: dict[str, float] = {}
 
     start = time.perf_counter()
-    bone = bone_surfaces(contours)
+    bone = bone_surfaces(contours, settings.joins)
     gaps = (_boundary_gap(bone.distal, 1.0, bone.shaft, 0.0), _boundary_gap(bone.shaft, 1.0, bone.proximal, 0.0))
     timings["surfaces"] = time.perf_counter() - start
 
     start = time.perf_counter()
     frame = contours.frame
-    surfaces = _caps_and_sides(bone, apex_fill)
+    surfaces = _caps_and_sides(bone, apex_fill, settings.joins)
     scanner = [s.transformed(frame.axes, frame.origin) for s in surfaces]
     named = [(s.region, occ.make_face(s)) for s in scanner]
     patch_errors = {}
@@ -174,6 +178,7 @@ def build_nurbs(contours: ContourSet, *, settings: NurbsSettings) -> NurbsModel:
         shape=solid,
         face_names=tuple(sorted(face_names, key=lambda item: FACE_NAMES.index(item[0]))),
         apex_fill=apex_fill,
+        joins=settings.joins,
         volume_mm3=volume,
         refits=bone.refits,
         boundary_gap_mm=gaps,
@@ -183,11 +188,20 @@ def build_nurbs(contours: ContourSet, *, settings: NurbsSettings) -> NurbsModel:
     )
 
 
-def _caps_and_sides(bone: BoneSurfaces, apex_fill: str) -> list[BSplineSurface]:
-    """The side faces, plus the ring caps when ``apex_fill`` is "ring" (bone coordinates)."""
+def _caps_and_sides(bone: BoneSurfaces, apex_fill: str, joins: str) -> list[BSplineSurface]:
+    """The side faces, plus the ring caps when ``apex_fill`` is "ring" (bone coordinates): cones for C0
+    joins, caps tangent to the ends for G1."""
     sides = [bone.distal, bone.shaft, bone.proximal]
     if apex_fill != "ring":
         return sides
+    if joins == "G1":
+        return [
+            tangent_ring_cap(bone.distal_ring, bone.distal_outward, bone.distal_apex, np.array([0.0, 0.0, 1.0]),
+                             "distal_apex_cap", apex_first=True),
+            *sides,
+            tangent_ring_cap(bone.proximal_ring, bone.proximal_outward, bone.proximal_apex, bone.proximal_axis,
+                             "proximal_apex_cap", apex_first=False),
+        ]
     return [
         ring_cap(bone.distal_ring, bone.distal_apex, "distal_apex_cap", apex_first=True),
         *sides,

@@ -161,3 +161,30 @@ def read_step(path: str | Path):
     from build123d import import_step
 
     return import_step(str(path))
+
+
+def read_named_step(path: str | Path) -> tuple[Any, list[tuple[str, Any]]]:
+    """The one solid of a STEP file (as bonecad writes a model) and its faces with their STEP names
+    (``ADVANCED_FACE('distal', ...)``; '' where a face has none). KernelError when the file holds no
+    solid or several."""
+    from OCP.IFSelect import IFSelect_RetDone
+    from OCP.STEPControl import STEPControl_Reader
+    from OCP.TopAbs import TopAbs_SOLID
+    from OCP.TopoDS import TopoDS
+
+    from bonecad.occ.brep import _subshapes, faces
+
+    reader = STEPControl_Reader()
+    if reader.ReadFile(str(path)) != IFSelect_RetDone:
+        raise KernelError(f"OpenCascade could not read STEP file {path}")
+    reader.TransferRoots()
+    found = _subshapes(reader.OneShape(), TopAbs_SOLID, TopoDS.Solid_s)
+    if len(found) != 1:
+        raise KernelError(f"STEP file {path} holds {len(found)} solids, not one")
+    transfer = reader.WS().TransferReader()
+    named = []
+    for face in faces(found[0]):
+        entity = transfer.EntityFromShapeResult(face, 1)
+        name = entity.Name().ToCString() if entity is not None and hasattr(entity, "Name") else ""
+        named.append((name, face))
+    return found[0], named

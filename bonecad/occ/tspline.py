@@ -101,6 +101,14 @@ def bspline_surface(ts: TSpline) -> Geom_BSplineSurface:
         raise KernelError(f"OpenCascade rejected the B-spline surface: {exc}") from exc
 
 
+def bspline_face(ts: TSpline, *, tolerance_mm: float = 1e-7) -> TopoDS_Face:
+    """A tensor-product T-spline as one face on its whole B-spline surface (:func:`bspline_surface`)."""
+    maker = BRepBuilderAPI_MakeFace(bspline_surface(ts), tolerance_mm)
+    if not maker.IsDone():
+        raise KernelError(f"OpenCascade could not make a face of {ts.n_control} poles (error {maker.Error()})")
+    return maker.Face()
+
+
 # ------------------------------------------------------------ merged faces
 def tensor_product_blocks(ts: TSpline) -> list[np.ndarray]:
     """Partition of the Bezier elements into tensor-product blocks (greedy, maximal rectangles).

@@ -105,6 +105,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compare-tensor-product", action="store_true", default=None,
                    help="also fit a tensor-product B-spline to the T-spline's tolerance and report its control points")
 
+    p = sub.add_parser("patch", help="one region of the T-spline surface (a plate's footprint) -> patch.step/.iges",
+                       description="Write one region of the bone surface as one untrimmed B-spline face, exact to "
+                       "the T-spline, with its deviation from the mesh and a check that it thickens into a plate "
+                       "blank: patch.step, patch.iges and patch.json into --out. The region: a named one of the "
+                       "[patch] settings, or a height range (mm above the plafond centre) and an angle range "
+                       "(degrees from lateral towards anterior: 90 anterior, 180 medial).")
+    p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--region", help="a named region, e.g. anteromedial_distal_tibia")
+    p.add_argument("--height", type=float, nargs=2, metavar=("FROM", "TO"), help="heights, mm above the plafond")
+    p.add_argument("--angle", type=float, nargs=2, metavar=("FROM", "TO"), help="angles, degrees from lateral")
+    p.add_argument("--mesh", type=Path, help="the mesh of a reconstruction folder, if it has moved")
+    _add_common(p)
+
     p = sub.add_parser("segment", help="CT volume -> tibia surface mesh",
                        description="Read a CT volume (DICOM folder, .nii/.nii.gz, .nrrd, .mha), segment the "
                        "tibia (cortical bone threshold, marrow filled, fibula/femur/talus separated) and write its "
@@ -209,6 +223,15 @@ def _run(args: argparse.Namespace) -> None:
         result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units)
         _print_result(result)
         print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
+    elif args.command == "patch":
+        region = pipeline.patch_region(settings, args.region, args.height, args.angle)
+        doc = pipeline.run_patch(args.source, args.out, settings, region, mesh=args.mesh, units=args.units)
+        fp, dev = doc.footprint, doc.mesh_deviation
+        print(f"{region.name}: {fp.surface.shape[0]} x {fp.surface.shape[1]} poles, heights "
+              f"{fp.height_span_mm[0]:.1f}-{fp.height_span_mm[1]:.1f} mm, angles {fp.angle_span_deg[0]:.1f}-"
+              f"{fp.angle_span_deg[1]:.1f} deg; from the T-spline {fp.tspline_deviation_mm:.1e} mm, from the mesh "
+              f"RMS {dev['rms_mm']:.3f} mm, max {dev['max_mm']:.3f} mm; {doc.plate_blank['thickness_mm']} mm plate "
+              f"blank {'valid' if doc.plate_blank['valid'] else 'INVALID'}; written to {args.out}")
     elif args.command == "segment":
         bone = pipeline.run_segment(args.ct, args.out, settings)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")

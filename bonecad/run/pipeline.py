@@ -367,3 +367,87 @@ def run_demo(out_dir: str | Path, settings: Settings | None = None) -> Reconstru
             bone = replace(load_input(dicom, settings), source=str(Path(out_dir) / dicom.name))
         result = reconstruct_bone(bone, stage_dir, settings, timings=timings)
     return replace(result, out_dir=Path(out_dir))
+
+
+def patch_region(settings: Settings, name: str | None, height_mm: tuple[float, float] | None,
+                 angle_deg: tuple[float, float] | None):
+    """The region of ``bonecad patch``: a named one of [patch], or the height and angle ranges given."""
+    from bonecad.tspline_model.patch import PatchRegion
+
+    if name is not None:
+        if height_mm is not None or angle_deg is not None:
+            raise InputError("give either --region NAME or --height and --angle, not both")
+        presets = {k: v for k, v in vars(settings.patch).items() if isinstance(v, tuple)}
+        if name not in presets:
+            raise InputError(f"no region named {name!r}; the named regions are {sorted(presets)}")
+        h0, h1, a0, a1 = presets[name]
+        return PatchRegion(name, (h0, h1), (a0, a1))
+    if height_mm is None or angle_deg is None:
+        raise InputError("give --region NAME, or both --height FROM TO and --angle FROM TO")
+    return PatchRegion("patch", (height_mm[0], height_mm[1]), (angle_deg[0], angle_deg[1]))
+
+
+def _model_folder(folder: Path, mesh: Path | None, settings: Settings):
+    """The tube (bone coordinates), the frame's axes and origin and the mesh of a reconstruction's folder
+    (tspline.json, frame.json; the mesh named in frame.json unless ``mesh`` is given)."""
+    import json
+
+    from bonecad.splines.tspline import from_dict
+
+    try:
+        model = json.loads((folder / "tspline.json").read_text())
+        frame = json.loads((folder / "frame.json").read_text())
+        tube = from_dict(model["tube"])
+        bone_frame = frame["bone_frame"]
+        rounded = np.array([bone_frame["lateral"], bone_frame["anterior"], bone_frame["proximal"]], dtype=np.float64)
+        # frame.json rounds to 1e-6: the nearest orthogonal axes, so that mapping the tube to bone
+        # coordinates and the patch back is exact (rounded axes would move it by ~1e-5 mm)
+        left, _, right = np.linalg.svd(rounded)
+        axes = left @ right
+        origin = np.array(bone_frame["origin"], dtype=np.float64)
+        source = Path(mesh or frame["input"]["file"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"not a bonecad reconstruction folder (tspline.json and frame.json): {exc}", folder) from exc
+    if not source.exists():
+        raise InputError(f"the mesh of this reconstruction, {source}, is gone: give it with --mesh", folder)
+    bone = load_bone(source, settings=settings.mesh, plausible=settings.units)
+    tube = tube.with_control_points((tube.control_points - origin) @ axes.T, tube.weights)
+    return tube, axes, origin, bone
+
+
+def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, region, *, mesh: Path | None = None,
+              units: Units = "auto"):
+    """``bonecad patch``: one region of the T-spline surface as one untrimmed B-spline face.
+
+    source : a reconstruction's output folder (its tspline.json, frame.json and mesh), or an input
+    (mesh file or CT volume), for which the T-spline model is built first. Writes patch.step,
+    patch.iges and patch.json into ``out_dir``; returns the PatchDocument.
+    """
+    from bonecad.export.documents import PatchDocument
+    from bonecad.occ.operations import solids, thicken
+    from bonecad.occ.brep import is_valid, volume_mm3
+    from bonecad.occ.surfaces import make_face
+    from bonecad.tspline_model.model import build_tspline_model
+    from bonecad.tspline_model.patch import footprint_patch, mesh_deviation
+
+    source = Path(source)
+    if source.is_dir() and (source / "tspline.json").exists():
+        tube, axes, origin, bone = _model_folder(source, mesh, settings)
+    else:
+        bone = load_input(source, settings, units=units)
+        frame, contours, _ = frame_and_contours(bone, settings)
+        model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
+                                    apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
+        tube, axes, origin = model.tspline, frame.axes, frame.origin
+    footprint = footprint_patch(tube, region)
+    doc = PatchDocument(footprint, axes, origin, {}, {})
+    deviation = mesh_deviation(doc.surface, bone.vertices, bone.faces, settings.patch.mesh_samples)
+    thickness = settings.patch.plate_thickness_mm
+    blank = solids(thicken(make_face(doc.surface), thickness))
+    plate = {"thickness_mm": thickness, "direction": "out of the bone", "solids": len(blank),
+             "valid": bool(blank) and all(map(is_valid, blank)),
+             "volume_mm3": round(sum(volume_mm3(b) for b in blank), 3)}
+    doc = replace(doc, mesh_deviation=deviation, plate_blank=plate)
+    with staged_output(Path(out_dir)) as stage_dir:
+        export("patch", doc, stage_dir)
+    return doc

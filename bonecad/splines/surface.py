@@ -398,15 +398,47 @@ def averaged_interpolation_knots(params: np.ndarray, degree: int = 3) -> np.ndar
     return np.concatenate([np.zeros(degree + 1), inner, np.ones(degree + 1)])
 
 
-def interpolate_clamped(values: np.ndarray, params: np.ndarray, degree: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """(poles, knots) of the clamped B-spline through values (n, ...) at increasing params (n,) on [0, 1]."""
+def interpolate_clamped(values: np.ndarray, params: np.ndarray, degree: int = 3, *,
+                        end_derivatives: tuple[np.ndarray, np.ndarray] | None = None
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """(poles, knots) of the clamped B-spline through values (n, ...) at increasing params (n,) on [0, 1].
+
+    end_derivatives : (first derivative at 0, at 1), each shaped like one value; the
+        curve then has n + 2 poles, the interior parameters as its interior knots
+        (NURBS Book 9.2.2, cubic only), and those derivatives exactly.
+    """
     values = np.asarray(values, dtype=np.float64)
     params = np.asarray(params, dtype=np.float64)
     n = len(values)
     if params.shape != (n,) or np.any(np.diff(params) <= 0) or params[0] != 0.0 or params[-1] != 1.0:
         raise FitError("clamped interpolation parameters must increase from 0 to 1, one per value")
-    knots = averaged_interpolation_knots(params, degree)
-    matrix = design_matrix(params, knots, degree, False, n).toarray()
     flat = values.reshape(n, -1)
-    poles = solve_dense(matrix, flat, max_condition=_MAX_CONDITION, what="clamped interpolation")
-    return poles.reshape(values.shape), knots
+    if end_derivatives is None:
+        knots = averaged_interpolation_knots(params, degree)
+        matrix = design_matrix(params, knots, degree, False, n).toarray()
+        poles = solve_dense(matrix, flat, max_condition=_MAX_CONDITION, what="clamped interpolation")
+        return poles.reshape(values.shape), knots
+    if degree != 3 or n < 2:
+        raise FitError(f"end-derivative interpolation is cubic through at least 2 values, got degree {degree}, {n}")
+    knots = np.concatenate([np.zeros(4), params[1:-1], np.ones(4)])
+    count = n + 2
+    rows = design_matrix(params, knots, degree, False, count).toarray()
+    start, end = np.zeros(count), np.zeros(count)
+    # S'(0) = 3 (P1 - P0) / t4, S'(1) = 3 (P_last - P_last-1) / (1 - t_count-1)
+    start[[0, 1]] = np.array([-1.0, 1.0]) * 3.0 / knots[4]
+    end[[-2, -1]] = np.array([-1.0, 1.0]) * 3.0 / (1.0 - knots[count - 1])
+    matrix = np.vstack([rows[:1], start, rows[1:-1], end, rows[-1:]])
+    rhs = np.vstack([flat[:1], np.reshape(end_derivatives[0], (1, -1)), flat[1:-1],
+                     np.reshape(end_derivatives[1], (1, -1)), flat[-1:]])
+    poles = solve_dense(matrix, rhs, max_condition=_MAX_CONDITION, what="clamped interpolation with end derivatives")
+    poles[[0, -1]] = flat[[0, -1]]  # a clamped end is its value: exactly, not to rounding
+    return poles.reshape((count, *values.shape[1:])), knots
+
+
+def end_derivative(poles: np.ndarray, knots: np.ndarray, degree: int, end: int) -> np.ndarray:
+    """Poles of the first derivative at the start (``end`` 0) or the end (1) of a clamped direction,
+    for poles (n, ...) along that direction: a curve in the other direction's basis (exact)."""
+    n = len(poles)
+    if end == 0:
+        return degree * (poles[1] - poles[0]) / (knots[degree + 1] - knots[1])
+    return degree * (poles[n - 1] - poles[n - 2]) / (knots[n + degree - 1] - knots[n - 1])

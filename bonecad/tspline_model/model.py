@@ -272,7 +272,7 @@ def build_tspline_model(
     )
     timings["caps"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    shape, face_names = _occ_shape(tube, caps, par, frame)
+    shape, face_names = _occ_shape(tube, caps, par, frame, layout=st.face_layout)
     timings["occ"] = time.perf_counter() - clock
     return TSplineModel(
         tspline=tube,
@@ -296,33 +296,47 @@ def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
     return ts.with_control_points(frame.to_scanner(ts.control_points), ts.weights)
 
 
+FACE_LAYOUTS = ("tube", "blocks", "elements")
+
+
 def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: AnatomicalFrame, *,
-               merge: bool = True) -> tuple[object, list[tuple[str, object]]]:
+               layout: str = "tube") -> tuple[object, list[tuple[str, object]]]:
     """The tube's and the caps' faces (scanner coordinates), sewn into a closed, valid solid with outward faces.
 
-    merge : one B-spline face per tensor-product block of Bezier elements
-    (exactly the same surface, far fewer faces: DESIGN.md's lean STEP files);
-    False: one Bezier face per element. Tube faces are named by the region
-    ("distal", "shaft", "proximal") that holds the middle of their t-range, cap
-    faces "distal_apex_cap" / "proximal_apex_cap". Returns (solid, [(name, face)]).
+    layout : "tube": the tube as one B-spline face named "tube", exactly (its
+    tensor-product form on all its knot lines,
+    :func:`~bonecad.splines.tspline.tensor.tensor_product_form`), and each cap as
+    one face; "blocks": one B-spline face per tensor-product block of Bezier
+    elements (exactly the same surface); "elements": one Bezier face per element.
+    Tube faces of "blocks" and "elements" are named by the region ("distal",
+    "shaft", "proximal") that holds the middle of their t-range. Cap faces are
+    "distal_apex_cap" / "proximal_apex_cap". Returns (solid, [(name, face)]).
     """
     from bonecad.occ.brep import is_valid, named_solid
-    from bonecad.occ.tspline import bezier_faces, merged_faces
+    from bonecad.occ.tspline import bezier_faces, bspline_face, merged_faces
+    from bonecad.splines.tspline.tensor import tensor_product_form
+
+    if layout not in FACE_LAYOUTS:
+        raise ValueError(f"face layout must be one of {FACE_LAYOUTS}, got {layout!r}")
 
     def faces_of(ts: TSpline) -> tuple[list, np.ndarray]:
         """Faces of a patch and the t in the middle of each (parameters of ``ts``)."""
         ext = ts.extraction
         scanner = to_scanner(ts, frame)
-        if merge:
+        if layout == "blocks":
             pairs = merged_faces(scanner)
             return [f for f, _ in pairs], np.array([ext.t_bounds[b].mean() for _, b in pairs])
         return bezier_faces(scanner), ext.t_bounds.mean(axis=1)
 
-    faces, t_mid = faces_of(tube)
-    regions = np.where(t_mid < par.t_distal, "distal", np.where(t_mid > par.t_proximal, "proximal", "shaft"))
-    named = list(zip(regions.tolist(), faces))
-    for cap in caps:
-        named.extend((f"{cap.end}_apex_cap", face) for face in faces_of(cap.tspline)[0])
+    if layout == "tube":
+        named = [("tube", bspline_face(to_scanner(tensor_product_form(tube), frame)))]
+        named.extend((f"{cap.end}_apex_cap", bspline_face(to_scanner(cap.tspline, frame))) for cap in caps)
+    else:
+        faces, t_mid = faces_of(tube)
+        regions = np.where(t_mid < par.t_distal, "distal", np.where(t_mid > par.t_proximal, "proximal", "shaft"))
+        named = list(zip(regions.tolist(), faces))
+        for cap in caps:
+            named.extend((f"{cap.end}_apex_cap", face) for face in faces_of(cap.tspline)[0])
     # Neighbouring Bezier edges agree to rounding; a T-junction lying a few
     # micrometres from an element corner can still leave a pair unsewn at the
     # finest tolerance, so widen it (up to 10 um) until the solid closes.
