@@ -33,7 +33,7 @@ from bonecad.contours.curves import ContourSet, bone_coordinates, contour_curves
 from bonecad.errors import InputError
 from bonecad.export.registry import export
 from bonecad.export.documents import FrameDocument
-from bonecad.export.report import ReportDocument
+from bonecad.export.report import ReportDocument, Tolerances
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
 from bonecad.run.executor import Executor, InProcess, executor_for
@@ -256,7 +256,8 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
         with timings.stage("report"):
             doc = ReportDocument(input_summary={**bone.summary(), "side": frame.side}, frame=frame.as_dict(),
                                  models=tuple(reports[m] for m in MODELS if m in reports),
-                                 timings_s={**timings.seconds, "total (wall)": timings.wall_s()})
+                                 timings_s={**timings.seconds, "total (wall)": timings.wall_s()},
+                                 tolerances=Tolerances.of(settings.tspline), contours=contours)
             export("report", doc, stage_dir)
     return Reconstruction(bone=bone, frame=frame, contours=contours,
                           models={m: built[m] for m in MODELS if m in built},
