@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Set up bonecad from nothing on Debian with Python 3.11: system libraries
-# (OpenGL/X11 runtime that OpenCascade, VTK and MeshLab link against), then a
+# (OpenGL/X11 runtime that OpenCascade, VTK and MeshLab link against; Chromium,
+# in which tests/test_report_browser.py renders report.html headless), then a
 # virtual environment in .venv with bonecad and its test tools. Idempotent.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-packages="libgl1 libglx0 libopengl0 libegl1 libglu1-mesa libx11-6 libxrender1 libxext6 libxi6 libsm6 libice6 libfontconfig1 libfreetype6 libgomp1"
+packages="libgl1 libglx0 libopengl0 libegl1 libglu1-mesa libx11-6 libxrender1 libxext6 libxi6 libsm6 libice6 libfontconfig1 libfreetype6 libgomp1 chromium"
 if command -v apt-get >/dev/null 2>&1; then
     missing=""
     for p in $packages; do

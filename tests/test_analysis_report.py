@@ -5,6 +5,7 @@ Goldens are updated on purpose with ``BONECAD_UPDATE_GOLDENS=1 pytest tests/test
 from __future__ import annotations
 
 import json
+import re
 from html.parser import HTMLParser
 
 import numpy as np
@@ -220,3 +221,24 @@ def test_summary_first_with_verdicts_and_no_raw_lists_in_cells(sphere, tmp_path)
     raw = [c for c in page.cells if c.lstrip().startswith(("[", "{", "(")) or "': " in c]
     assert not raw, raw[:5]
     assert "fibula" in page.cells and "merged duplicate vertices" in text
+
+
+def test_3d_view_is_offline_decimated_and_signed():
+    """The view's meshes keep the triangle budget; a model 1 mm outside the mesh reads -1 mm (mesh inside the
+    CAD model); the fragment inlines three.js and fetches nothing."""
+    import trimesh
+
+    from bonecad.export.viewer import decimate, deviation_at, input_view, model_view, viewer_html
+
+    bone = trimesh.creation.icosphere(subdivisions=5, radius=10.0)
+    v, f = decimate(bone.vertices, bone.faces, 2000)
+    assert 1500 <= len(f) <= 2000
+    outer = trimesh.creation.icosphere(subdivisions=3, radius=11.0)
+    assert deviation_at(outer.vertices, bone.vertices, bone.faces) == pytest.approx(-1.0, abs=0.02)
+    model = model_view("tspline", outer.vertices, outer.faces, bone.vertices, bone.faces, 500)
+    mesh = input_view(bone.vertices, bone.faces, {"tspline": np.full(len(bone.vertices), 0.5)}, 3000)
+    assert len(model.triangles) <= 500 and np.allclose(mesh.deviation_mm["tspline"], 0.5)
+    page = viewer_html([mesh, model], {"bone_frame": {"origin": [0, 0, 0], "lateral": [1, 0, 0],
+                                                      "anterior": [0, 1, 0], "proximal": [0, 0, 1]}})
+    assert "TrackballControls" in page and "view-canvas" in page
+    assert not re.search(r"<(script|link|img|iframe)[^>]+(src|href)=", page)  # nothing fetched: all inlined
