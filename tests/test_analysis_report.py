@@ -242,3 +242,17 @@ def test_3d_view_is_offline_decimated_and_signed():
                                                       "anterior": [0, 1, 0], "proximal": [0, 0, 1]}})
     assert "TrackballControls" in page and "view-canvas" in page
     assert not re.search(r"<(script|link|img|iframe)[^>]+(src|href)=", page)  # nothing fetched: all inlined
+
+
+def test_result_show_gives_the_3d_view_in_jupyter(phantom, phantom_frame):
+    """``Reconstruction.show()``: the report's 3-D view as an HTML object Jupyter displays (an iframe)."""
+    import trimesh
+
+    from bonecad.export.viewer import input_view
+    from bonecad.run.pipeline import Reconstruction
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    view = input_view(sphere.vertices, sphere.faces, {"tspline": np.zeros(len(sphere.vertices))}, 500)
+    shown = Reconstruction(bone=phantom, frame=phantom_frame, views=(view,)).show()
+    assert shown.data.startswith("<iframe srcdoc=") and "TrackballControls" in shown.data
+    assert "view-canvas" in shown.data and "&lt;script" in shown.data

@@ -26,8 +26,9 @@ body{font-family:system-ui,sans-serif;margin:1.5em 2em;color:#222;max-width:1500
 h1{margin-bottom:0.2em}h2{border-bottom:2px solid #ddd;padding-bottom:0.2em;margin-top:1.6em}
 table{border-collapse:collapse;margin:0.6em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}
 th{background:#f0f0f0}td:first-child,th:first-child{text-align:left}
-.cards{display:flex;flex-wrap:wrap;gap:1em}.card{border:1px solid #bbb;border-radius:6px;padding:0.8em 1em;
-background:#fafafa;min-width:330px}.card h3{margin:0 0 0.4em 0}
+.cards{display:flex;flex-wrap:wrap;gap:1em;align-items:flex-start}.card{border:1px solid #bbb;border-radius:6px;
+padding:0.8em 1em;background:#fafafa;flex:1 1 400px;max-width:620px}.card h3{margin:0 0 0.4em 0}
+.card table{display:inline-table;vertical-align:top;margin:0.3em 0.8em 0.3em 0}
 .verdict{display:inline-block;padding:2px 10px;border-radius:10px;font-weight:bold;color:#fff}
 .met{background:#2e7d32}.missed{background:#c62828}.noise{background:#ef6c00}
 .reason{font-size:0.9em;color:#444;max-width:42em}

@@ -123,7 +123,8 @@ def viewer_html(meshes: list[ViewMesh], frame: dict) -> str:
     if not meshes:
         return ""
     toggles = "".join(
-        f"<label><input type='checkbox' checked data-mesh='{i}'> {html.escape(m.name)}</label> "
+        f"<label style='margin-right:1.2em'><input type='checkbox' checked data-mesh='{i}'> "
+        f"{html.escape(m.name)}</label>"
         for i, m in enumerate(meshes))
     choices = list(dict.fromkeys(k for m in meshes for k in m.deviation_mm))
     colour_by = "".join(f"<option value='{html.escape(k)}'{' selected' if k == choices[-1] else ''}>"
@@ -134,10 +135,11 @@ def viewer_html(meshes: list[ViewMesh], frame: dict) -> str:
         + ". Drag to orbit, wheel to zoom, right-drag to pan. Colour: signed deviation, mm "
         "(red = mesh outside the CAD model, blue = inside); the input mesh is coloured by its deviation from "
         f"the model chosen here: <select id='colour-by'>{colour_by}</select></p>"
-        f"<p>{toggles} <label>colour limit, mm <input id='colour-limit' type='number' step='0.05' min='0.01' "
+        f"<p>{toggles}<label style='margin-right:1.2em'>colour limit, mm "
+        "<input id='colour-limit' type='number' step='0.05' min='0.01' "
         "style='width:5em'></label> <label><input type='checkbox' id='show-frame' checked> frame axes</label></p>"
         "<div style='position:relative'><canvas id='view-canvas' width='1200' height='700' "
-        "style='width:100%;max-width:1200px;border:1px solid #ccc;background:#fff'></canvas>"
+        "style='width:100%;max-width:1200px;border:1px solid #999;background:#fff'></canvas>"
         "<div id='colour-scale' style='display:flex;align-items:center;gap:6px;margin-top:4px'>"
         "<span id='scale-lo'></span><span style='display:inline-block;width:300px;height:14px;"
         "background:linear-gradient(to right,rgb(33,102,172),rgb(247,247,247),rgb(178,24,43))'></span>"
