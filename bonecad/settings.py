@@ -129,7 +129,8 @@ class TSplineSettings:
 @dataclass(frozen=True)
 class AnalysisSettings:
     """Deviation histogram bands (mm), samples per direction, tessellation (mm, rad, relative),
-    seam classes (gap mm, angle degrees, relative curvature jump, flat radius mm)."""
+    seam classes (gap mm, angle degrees, relative curvature jump, flat radius mm), triangles per mesh
+    in the report's 3-D view."""
 
     band_width_mm: float
     band_limit_mm: float
@@ -144,6 +145,7 @@ class AnalysisSettings:
     continuity_angle_deg: float
     continuity_curvature_jump: float
     continuity_curvature_radius_ref_mm: float
+    view_max_triangles: int
 
     def __post_init__(self) -> None:
         width, limit = self.band_width_mm, self.band_limit_mm

@@ -5,6 +5,8 @@ Goldens are updated on purpose with ``BONECAD_UPDATE_GOLDENS=1 pytest tests/test
 from __future__ import annotations
 
 import json
+import re
+from html.parser import HTMLParser
 
 import numpy as np
 import pytest
@@ -15,7 +17,7 @@ from tests.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, 
 from bonecad.render.figures import deviation_map_png, histogram_png
 from bonecad.analysis.model import ModelReport
 from bonecad.export.registry import export
-from bonecad.export.report import SCHEMA, ReportDocument
+from bonecad.export.report import SCHEMA, AT_NOISE, MET, NOT_MET, ReportDocument, Tolerances, verdict
 from bonecad.analysis.statistics import Histogram
 from bonecad.occ.brepmesh import brepmesh_face
 from bonecad.occ.read_faces import face_spline_surface
@@ -140,3 +142,117 @@ def test_report_without_both_models_has_no_comparison(tmp_path):
                                         models=(ModelReport("nurbs", figures={"x": tmp_path / "no.png"}),),
                                         timings_s={}),
                tmp_path)
+
+
+class Cells(HTMLParser):
+    """The text of every table cell, and the verdict badges, of an HTML page."""
+
+    def __init__(self):
+        super().__init__()
+        self.cells: list[str] = []
+        self.verdicts: dict[str, str] = {}
+        self._in_cell = False
+        self._card = ""
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag in ("td", "th"):
+            self._in_cell = True
+            self.cells.append("")
+        if (attrs.get("id") or "").startswith("card-"):
+            self._card = attrs["id"][5:]
+        if "data-verdict" in attrs:
+            self.verdicts[self._card] = attrs["data-verdict"]
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th"):
+            self._in_cell = False
+
+    def handle_data(self, data):
+        if self._in_cell:
+            self.cells[-1] += data
+
+
+def parse_cells(text: str) -> Cells:
+    parser = Cells()
+    parser.feed(text)
+    return parser
+
+
+def test_summary_first_with_verdicts_and_no_raw_lists_in_cells(sphere, tmp_path):
+    """The summary cards say met / not met / stopped at the data's noise (with the reason) against the run's
+    tolerances, measured on the deviation; no table cell holds a Python list or dict."""
+    shape, tess = sphere
+    v, f, dev = _deviation(sphere)
+    d = dev.mesh_to_cad
+    worst = max(d.stats.max_outside_mm, d.stats.max_inside_mm)
+    loose = Tolerances(share=0.5, within_mm=0.3, max_deviation_mm=worst + 0.01, rms_mm=d.stats.rms_mm + 0.01)
+    tight = replace(loose, max_deviation_mm=worst / 2)
+    noise = "tolerances met up to the data's noise: 0.40% of the surface lies beyond 0.25 mm"
+    assert verdict(ModelReport("nurbs", {}, dev), loose)["verdict"] == MET
+    missed = verdict(ModelReport("nurbs", {}, dev), tight)
+    assert missed["verdict"] == NOT_MET and "largest deviation" in missed["reason"]
+    stopped = verdict(ModelReport("tspline", {"fit_stopped": noise}, dev), tight)
+    assert stopped["verdict"] == AT_NOISE and noise in stopped["reason"]
+    (tmp_path / "nurbs.step").write_bytes(b"x" * 2048)
+    models = (ModelReport("nurbs", {"faces": 1, "control_points": 45, "surfaces": [{"knots_u": [0.0, 0.5, 1.0, 1.0],
+                                                                                     "degrees": [3, 3]}]},
+                          dev, seam_continuity(shape, tolerances=CONTINUITY), knot_continuity(shape)),
+              ModelReport("tspline", {"faces": 1, "control_points": 30, "fit_stopped": noise,
+                                      "fit": {"rms_mm": 0.1}, "fit_history": [{"rms_mm": 0.2}]}, dev))
+    doc = ReportDocument(input_summary={"file": "sphere.stl", "triangles": len(f), "side": "right",
+                                        "bodies": [{"role": "tibia", "triangles": len(f)},
+                                                   {"role": "fibula", "triangles": 10}],
+                                        "repairs": ["merged duplicate vertices"]},
+                         frame={"bone_frame": {"origin": [1.0, 2.0, 3.0], "lateral": [1.0, 0.0, 0.0]},
+                                "regions_mm_above_origin": {"shaft": [30.0, 280.0]}, "axes": np.eye(3)},
+                         models=models, timings_s={"deviation": 1.5}, tolerances=tight)
+    files = export("report", doc, tmp_path)
+    report = json.loads(files["json"].read_text())
+    assert report["summary"]["nurbs"]["verdict"] == NOT_MET
+    assert report["summary"]["nurbs"]["files_bytes"] == {"nurbs.step": 2048}
+    assert report["summary"]["tspline"]["verdict"] == AT_NOISE
+    assert report["summary"]["nurbs"]["within_mm"]["0.25"] == pytest.approx(d.share_within(0.25))
+    text = files["html"].read_text()
+    page = parse_cells(text)
+    assert page.verdicts == {"nurbs": NOT_MET, "tspline": AT_NOISE}
+    assert text.index("Summary") < text.index("Model: nurbs")
+    assert len(page.cells) > 100
+    raw = [c for c in page.cells if c.lstrip().startswith(("[", "{", "(")) or "': " in c]
+    assert not raw, raw[:5]
+    assert "fibula" in page.cells and "merged duplicate vertices" in text
+
+
+def test_3d_view_is_offline_decimated_and_signed():
+    """The view's meshes keep the triangle budget; a model 1 mm outside the mesh reads -1 mm (mesh inside the
+    CAD model); the fragment inlines three.js and fetches nothing."""
+    import trimesh
+
+    from bonecad.export.viewer import decimate, deviation_at, input_view, model_view, viewer_html
+
+    bone = trimesh.creation.icosphere(subdivisions=5, radius=10.0)
+    v, f = decimate(bone.vertices, bone.faces, 2000)
+    assert 1500 <= len(f) <= 2000
+    outer = trimesh.creation.icosphere(subdivisions=3, radius=11.0)
+    assert deviation_at(outer.vertices, bone.vertices, bone.faces) == pytest.approx(-1.0, abs=0.02)
+    model = model_view("tspline", outer.vertices, outer.faces, bone.vertices, bone.faces, 500)
+    mesh = input_view(bone.vertices, bone.faces, {"tspline": np.full(len(bone.vertices), 0.5)}, 3000)
+    assert len(model.triangles) <= 500 and np.allclose(mesh.deviation_mm["tspline"], 0.5)
+    page = viewer_html([mesh, model], {"bone_frame": {"origin": [0, 0, 0], "lateral": [1, 0, 0],
+                                                      "anterior": [0, 1, 0], "proximal": [0, 0, 1]}})
+    assert "TrackballControls" in page and "view-canvas" in page
+    assert not re.search(r"<(script|link|img|iframe)[^>]+(src|href)=", page)  # nothing fetched: all inlined
+
+
+def test_result_show_gives_the_3d_view_in_jupyter(phantom, phantom_frame):
+    """``Reconstruction.show()``: the report's 3-D view as an HTML object Jupyter displays (an iframe)."""
+    import trimesh
+
+    from bonecad.export.viewer import input_view
+    from bonecad.run.pipeline import Reconstruction
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    view = input_view(sphere.vertices, sphere.faces, {"tspline": np.zeros(len(sphere.vertices))}, 500)
+    shown = Reconstruction(bone=phantom, frame=phantom_frame, views=(view,)).show()
+    assert shown.data.startswith("<iframe srcdoc=") and "TrackballControls" in shown.data
+    assert "view-canvas" in shown.data and "&lt;script" in shown.data

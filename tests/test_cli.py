@@ -1,6 +1,7 @@
 """The command line: outputs, exit statuses, clear errors, no partial output."""
 from __future__ import annotations
 
+import io
 import json
 import subprocess
 import sys
@@ -114,3 +115,31 @@ def test_a_ct_input_writes_the_segmented_tibia_beside_the_models(phantom, tmp_pa
     phantom.to_trimesh().export(mesh)
     assert main(["frame", str(mesh), "--out", str(tmp_path / "from_mesh"), "-q"]) == 0
     assert not (tmp_path / "from_mesh" / "bone.stl").exists()
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_fit_progress_bar_only_on_a_terminal_and_not_with_quiet(monkeypatch):
+    """The runner's fit callback drives a bar on stderr when it is a terminal; -q or a pipe: no bar."""
+    import argparse
+
+    from bonecad.run.cli import fit_progress
+    from bonecad.splines.tspline.fit import FitStats
+
+    stats = FitStats(control_points=264, elements=264, share_within=0.62, max_mm=4.28, rms_mm=0.44)
+    terminal = _Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    with fit_progress(argparse.Namespace(quiet=True), 10) as progress:
+        assert progress is None
+    with fit_progress(argparse.Namespace(quiet=False), 10) as progress:
+        assert progress is not None
+        progress(0, stats)
+        progress(1, stats)
+    assert "T-spline fit" in terminal.getvalue() and "2/11" in terminal.getvalue()
+    assert "264 control points, 62.0 % within tolerance" in terminal.getvalue()
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    with fit_progress(argparse.Namespace(quiet=False), 10) as progress:
+        assert progress is None

@@ -120,10 +120,14 @@ def test_budget_stops_refinement_and_says_so():
     pts, s, t = bumpy_tube(4000, rng)
     tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.001), max_deviation_mm=0.002, rms_mm=0.0005,
                   max_control_points=150)
-    res = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6)
+    rounds = []
+    res = fit_adaptive(cylinder(8, 4), pts, s=s, t=t, tolerances=tol, fairness=1e-6,
+                       progress=lambda round_, stats: rounds.append((round_, stats)))
     assert not res.converged
     assert "budget (150)" in res.stopped
     assert res.tspline.n_control <= 150
+    # the progress callback saw every round, in order, with its statistics
+    assert rounds == list(enumerate(res.history)) and len(rounds) >= 2
 
 
 def test_staircase_is_recognised_and_stops_refinement_at_its_noise():

@@ -24,16 +24,24 @@ report.json schema (``"schema": "bonecad.report/1"``)::
           "figures": {name: file name relative to the report}
         }
       },
-      "comparison": [ {row}, ... ] or null   # when models "nurbs" and "tspline" both exist
+      "comparison": [ {row}, ... ] or null,  # when models "nurbs" and "tspline" both exist
+      "tolerances": {"share", "within_mm", "max_deviation_mm", "rms_mm"} or null,   # the run's [tspline]
+      "summary": {NAME: {"verdict": "met" | "not met" | "stopped at the data's noise" | "not measured",
+                         "reason", "checks": [{"check", "measured", "target", "met"}],
+                         "faces", "control_points", "within_mm": {"0.1": share, ...},
+                         "max_mm": {"mesh_to_cad", "cad_to_mesh"}, "rms_mm": {...},
+                         "seam_classes": {"gap", "C0", "G1", "G2"}, "files_bytes": {file name: bytes}}},
+      "contours": [{"region", "curves", "control_points_per_curve", "tolerance_mm",
+                    "worst_max_deviation_mm", "mean_rms_deviation_mm", "within_tolerance", "repairs"}] or null
     }
 
-report.html shows the same, with every figure embedded (base64 PNG), and the
-NURBS-versus-T-spline table when both models exist.
+report.html (``bonecad.export.report_page``) shows the same for people: the
+summary first (input, one card per model with its verdict), the interactive
+3-D view, then tables (never a raw list or dict in a cell) and every figure
+embedded (base64 PNG).
 """
 from __future__ import annotations
 
-import base64
-import html
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +53,9 @@ from bonecad.export.registry import exporter
 from bonecad.staging import staged_file
 from bonecad.analysis.continuity import CLASSES, SeamContinuity
 from bonecad.analysis.model import ModelReport
+from bonecad.contours.curves import ContourSet
+from bonecad.export.report_page import render_html
+from bonecad.settings import TSplineSettings
 
 SCHEMA = "bonecad.report/1"
 #: share-within limits shown in the comparison table (mm)
@@ -131,14 +142,98 @@ def comparison_rows(models: list[ModelReport]) -> list[dict[str, Any]] | None:
     return rows
 
 
+@dataclass(frozen=True)
+class Tolerances:
+    """The run's surface tolerances (``[tspline]``): at least ``share`` of the surface within
+    ``within_mm`` (mm), no point farther than ``max_deviation_mm``, RMS at most ``rms_mm`` (mm)."""
+
+    share: float
+    within_mm: float
+    max_deviation_mm: float
+    rms_mm: float
+
+    @classmethod
+    def of(cls, settings: TSplineSettings) -> Tolerances:
+        share, within = settings.target_share_within_mm
+        return cls(float(share), float(within), settings.max_deviation_mm, settings.rms_mm)
+
+    def to_dict(self) -> dict[str, float]:
+        return {"share": self.share, "within_mm": self.within_mm, "max_deviation_mm": self.max_deviation_mm,
+                "rms_mm": self.rms_mm}
+
+
+#: verdicts of a model against the run's tolerances
+MET, NOT_MET, AT_NOISE, NOT_MEASURED = "met", "not met", "stopped at the data's noise", "not measured"
+
+
+def verdict(model: ModelReport, tolerances: Tolerances) -> dict[str, Any]:
+    """The model against the tolerances, measured by the analysis (mesh -> CAD deviation).
+
+    "met" when every check holds; otherwise "stopped at the data's noise" when the
+    model's fit stopped there (its ``fit_stopped`` says so, and is the reason), else "not met"."""
+    if model.deviation is None:
+        return {"verdict": NOT_MEASURED, "reason": "no deviation was measured", "checks": []}
+    d = model.deviation.mesh_to_cad
+    t = tolerances
+    worst = max(d.stats.max_outside_mm, d.stats.max_inside_mm)
+    share = d.share_within(t.within_mm)
+    checks = [
+        {"check": f"share of the surface within {t.within_mm:g} mm", "measured": share,
+         "target": f">= {t.share:g}", "met": share >= t.share},
+        {"check": "largest deviation, mm", "measured": worst, "target": f"<= {t.max_deviation_mm:g}",
+         "met": worst <= t.max_deviation_mm},
+        {"check": "RMS deviation, mm", "measured": d.stats.rms_mm, "target": f"<= {t.rms_mm:g}",
+         "met": d.stats.rms_mm <= t.rms_mm},
+    ]
+    missed = [c for c in checks if not c["met"]]
+    if not missed:
+        return {"verdict": MET, "reason": "every tolerance holds on the measured deviation", "checks": checks}
+    stopped = str(model.info.get("fit_stopped") or "")
+    misses = "; ".join(f"{c['check']} {c['measured']:.4g} (target {c['target']})" for c in missed)
+    if "noise" in stopped:
+        return {"verdict": AT_NOISE, "reason": f"{misses}; the fit stopped: {stopped}", "checks": checks}
+    return {"verdict": NOT_MET, "reason": misses + (f"; the fit stopped: {stopped}" if stopped else ""),
+            "checks": checks}
+
+
+def model_summary(model: ModelReport, tolerances: Tolerances | None, out_dir: Path | None) -> dict[str, Any]:
+    """One model's summary card: verdict, counts, shares within :data:`WITHIN_MM`, max and RMS both
+    ways (mm), seam classes and the sizes of its files in ``out_dir`` (bytes)."""
+    dev = model.deviation
+    card: dict[str, Any] = verdict(model, tolerances) if tolerances else {"verdict": NOT_MEASURED,
+                                                                          "reason": "no tolerances", "checks": []}
+    card["faces"] = model.info.get("faces")
+    card["control_points"] = _all_control_points(model.info)
+    directions = {"mesh_to_cad": dev.mesh_to_cad, "cad_to_mesh": dev.cad_to_mesh} if dev else {}
+    card["within_mm"] = {f"{limit:g}": dev.mesh_to_cad.share_within(limit) for limit in WITHIN_MM} if dev else {}
+    card["max_mm"] = {k: max(v.stats.max_outside_mm, v.stats.max_inside_mm) for k, v in directions.items()}
+    card["rms_mm"] = {k: v.stats.rms_mm for k, v in directions.items()}
+    card["seam_classes"] = model.continuity.summary()["class_counts"] if model.continuity else {}
+    files = sorted(out_dir.glob(f"{model.name}.*")) if out_dir is not None else []
+    card["files_bytes"] = {p.name: p.stat().st_size for p in files if p.is_file()}
+    return card
+
+
+def contour_rows(contours: ContourSet) -> list[dict[str, Any]]:
+    """Per region: curves, control points per curve, tolerance and achieved deviation (mm), repairs."""
+    rows = []
+    for region, s in contours.summary().items():
+        rows.append({"region": region, **s,
+                     "repairs": sum(len(c.repairs) for c in contours.region(region))})
+    return rows
+
+
 def build_report(
     *,
     input_summary: dict[str, Any],
     frame: dict[str, Any],
     models: list[ModelReport],
     timings_s: dict[str, float],
+    tolerances: Tolerances | None = None,
+    contours: ContourSet | None = None,
+    out_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """The report.json content (see module doc for the schema)."""
+    """The report.json content (see module doc for the schema); file sizes are those in ``out_dir``."""
     names = [m.name for m in models]
     if len(set(names)) != len(names):
         raise ValueError(f"model names must be unique, got {names}")
@@ -159,109 +254,36 @@ def build_report(
             "timings_s": timings_s,
             "models": out_models,
             "comparison": comparison_rows(models),
+            "tolerances": tolerances.to_dict() if tolerances else None,
+            "summary": {m.name: model_summary(m, tolerances, out_dir) for m in models},
+            "contours": contour_rows(contours) if contours is not None else None,
         }
     )
-
-
-def _fmt(value) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    return html.escape(str(value))
-
-
-def _table(rows: list[dict], columns: list[str]) -> str:
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
-    body = "".join("<tr>" + "".join(f"<td>{_fmt(r.get(c))}</td>" for c in columns) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
-
-
-def render_html(report: dict[str, Any], figures: dict[str, dict[str, Path]]) -> str:
-    """report.html text; ``figures`` maps model -> figure name -> PNG path (embedded)."""
-    parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>bonecad report</title>",
-        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin:1em 0}"
-        "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}th{background:#eee}"
-        "img{max-width:100%;border:1px solid #ddd}</style></head><body>",
-        "<h1>bonecad report</h1>",
-        "<h2>Input</h2>",
-        _table([{"key": k, "value": v} for k, v in report["input"].items()], ["key", "value"]),
-        "<h2>Frame</h2>",
-        _table([{"key": k, "value": v} for k, v in report["frame"].items()], ["key", "value"]),
-    ]
-    if report.get("comparison"):
-        parts += ["<h2>NURBS versus T-spline</h2>", _table(report["comparison"], ["quantity", "nurbs", "tspline"])]
-    for name, model in report["models"].items():
-        parts.append(f"<h2>Model: {html.escape(name)}</h2>")
-        parts.append(_table([{"key": k, "value": v} for k, v in model["info"].items()], ["key", "value"]))
-        dev = model["deviation"]
-        if dev:
-            rows = []
-            for direction in ("mesh_to_cad", "cad_to_mesh"):
-                s = dev[direction]["stats"]
-                rows.append(
-                    {
-                        "direction": direction,
-                        "RMS mm": s["rms_mm"],
-                        "mean mm": s["mean_mm"],
-                        **{f"|d| {k} mm": v for k, v in s["abs_percentiles_mm"].items()},
-                        "max out mm": s["max_outside_mm"],
-                        "max in mm": s["max_inside_mm"],
-                        "refined": dev[direction]["refined_share"],
-                    }
-                )
-            parts.append("<h3>Deviation (positive = mesh outside the CAD model)</h3>")
-            parts.append(_table(rows, list(rows[0].keys())))
-            parts.append(f"<p>Distances not refined on the exact surface are within "
-                         f"{dev['unrefined_bound_mm']:.3g} mm (tessellation chord error).</p>")
-            regions = dev["mesh_to_cad"]["regions"]
-            if regions:
-                rrows = [{"region": r, "RMS mm": v["stats"]["rms_mm"], "max out mm": v["stats"]["max_outside_mm"],
-                          "max in mm": v["stats"]["max_inside_mm"], "area mm2": v["stats"]["area_mm2"]}
-                         for r, v in regions.items()]
-                parts.append(_table(rrows, list(rrows[0].keys())))
-        cont = model["continuity"]
-        if cont:
-            s = cont["summary"]
-            parts.append("<h3>Continuity across seams</h3>")
-            parts.append(_table([{"edges": s["edges"], **s["class_counts"], "worst": s["worst_class"],
-                                  "max gap mm": s["max_gap_mm"], "max angle deg": s["max_angle_deg"],
-                                  "max curvature jump": s["max_curvature_jump"]}],
-                                ["edges", "gap", "C0", "G1", "G2", "worst", "max gap mm", "max angle deg",
-                                 "max curvature jump"]))
-        if model["knots"]:
-            krows = [{"face": k["face"], "kind": k["kind"], "degree": k["degree"],
-                      "C^k inside (u, v)": k["min_continuity"]} for k in model["knots"]]
-            parts.append("<h3>Continuity inside faces (knots)</h3>")
-            parts.append(_table(krows, list(krows[0].keys())))
-        for fig_name, path in figures.get(name, {}).items():
-            data = base64.b64encode(Path(path).read_bytes()).decode("ascii")
-            parts.append(f"<h3>{html.escape(fig_name)}</h3><img alt='{html.escape(fig_name)}' "
-                         f"src='data:image/png;base64,{data}'>")
-    parts.append("<h2>Timings</h2>")
-    parts.append(_table([{"stage": k, "seconds": v} for k, v in report["timings_s"].items()], ["stage", "seconds"]))
-    parts.append("</body></html>")
-    return "\n".join(parts)
 
 
 @dataclass(frozen=True)
 class ReportDocument:
     """What the report holds: the input summary (file, bodies, side), the frame (``as_dict``), one
-    ``ModelReport`` per model, the run's stage timings (s)."""
+    ``ModelReport`` per model, the run's stage timings (s), the run's tolerances, the contour curves,
+    and the 3-D view's HTML (``bonecad.export.viewer.viewer_html``; empty: no view)."""
 
     input_summary: dict[str, Any]
     frame: dict[str, Any]
     models: tuple[ModelReport, ...]
     timings_s: dict[str, float]
+    tolerances: Tolerances | None = None
+    contours: ContourSet | None = None
+    viewer: str = ""
 
-    def build(self) -> dict[str, Any]:
+    def build(self, out_dir: Path | None = None) -> dict[str, Any]:
+        """The report.json content; ``out_dir``: the folder whose model files the summary sizes."""
         for m in self.models:
             for fig_name, path in m.figures.items():
                 if not Path(path).is_file():
                     raise FileNotFoundError(f"figure '{fig_name}' of model '{m.name}' is missing: {path}")
         return build_report(input_summary=self.input_summary, frame=self.frame, models=list(self.models),
-                            timings_s=self.timings_s)
+                            timings_s=self.timings_s, tolerances=self.tolerances, contours=self.contours,
+                            out_dir=out_dir)
 
 
 @exporter("report", "json")
@@ -269,14 +291,14 @@ def report_json(doc: ReportDocument, out_dir: Path) -> Path:
     """report.json (schema above); figures referred to by file name (they are expected beside it)."""
     path = out_dir / "report.json"
     with staged_file(path) as tmp:
-        tmp.write_text(json.dumps(doc.build(), indent=1, allow_nan=False) + "\n")
+        tmp.write_text(json.dumps(doc.build(out_dir), indent=1, allow_nan=False) + "\n")
     return path
 
 
 @exporter("report", "html")
 def report_html(doc: ReportDocument, out_dir: Path) -> Path:
-    """report.html: the same, with every figure embedded."""
+    """report.html: the same for people, summary first, with the 3-D view and every figure embedded."""
     path = out_dir / "report.html"
     with staged_file(path) as tmp:
-        tmp.write_text(render_html(doc.build(), {m.name: m.figures for m in doc.models}))
+        tmp.write_text(render_html(doc.build(out_dir), {m.name: m.figures for m in doc.models}, doc.viewer))
     return path

@@ -10,6 +10,8 @@ import json
 import logging
 import signal
 import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from bonecad._version import __version__
@@ -184,6 +186,27 @@ def _print_result(result) -> None:
               f"deviation RMS {stats.rms_mm:.3f} mm, worst {max(stats.max_outside_mm, stats.max_inside_mm):.3f} mm")
 
 
+@contextmanager
+def fit_progress(args: argparse.Namespace, max_rounds: int) -> Iterator[Callable | None]:
+    """A progress bar of the T-spline fit's rounds (at most ``max_rounds`` + 1) on stderr, only on a terminal
+    and without ``-q``; yields the runner's callback (round, FitStats), or None for no bar. The log lines
+    print above the bar while it runs."""
+    if args.quiet or not sys.stderr.isatty():
+        yield None
+        return
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    with tqdm(total=max_rounds + 1, desc="T-spline fit", unit="round", file=sys.stderr, leave=False) as bar, \
+            logging_redirect_tqdm(loggers=[package_log]):
+        def update(round_: int, stats) -> None:
+            bar.update(1)
+            bar.set_postfix_str(f"{stats.control_points} control points, {100 * stats.share_within:.1f} % within "
+                                f"tolerance, max {stats.max_mm:.3f} mm, RMS {stats.rms_mm:.3f} mm")
+
+        yield update
+
+
 def settings_of(args: argparse.Namespace):
     """The run's settings: the defaults, the ``--config`` file, then each flag as an override of one setting."""
     from bonecad.settings import Settings
@@ -220,7 +243,9 @@ def _run(args: argparse.Namespace) -> None:
     elif args.command in ("frame", "curves", "reconstruct"):
         stage: dict[str, pipeline.Until] = {"frame": "frame", "curves": "curves", "reconstruct": "models"}
         until = stage[args.command]
-        result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units)
+        with fit_progress(args, settings.tspline.max_rounds) as progress:
+            result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units,
+                                          progress=progress)
         _print_result(result)
         print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
     elif args.command == "patch":
@@ -236,7 +261,8 @@ def _run(args: argparse.Namespace) -> None:
         bone = pipeline.run_segment(args.ct, args.out, settings)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
     elif args.command == "demo":
-        result = pipeline.run_demo(args.out, settings)
+        with fit_progress(args, settings.tspline.max_rounds) as progress:
+            result = pipeline.run_demo(args.out, settings, progress=progress)
         _print_result(result)
         print(f"demo outputs written to {args.out} ({result.wall_s:.1f} s)")
 

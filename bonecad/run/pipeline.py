@@ -15,6 +15,7 @@ map while its deviation is measured here. Every file goes through
 """
 from __future__ import annotations
 
+import html
 import importlib
 import logging
 import tempfile
@@ -23,7 +24,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
 
@@ -33,16 +34,20 @@ from bonecad.contours.curves import ContourSet, bone_coordinates, contour_curves
 from bonecad.errors import InputError
 from bonecad.export.registry import export
 from bonecad.export.documents import FrameDocument
-from bonecad.export.report import ReportDocument
+from bonecad.export.report import ReportDocument, Tolerances
+from bonecad.export.viewer import ViewMesh, input_view, model_view, viewer_html
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
 from bonecad.run.executor import Executor, InProcess, executor_for
 from bonecad.settings import Settings
+from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
 
 log = logging.getLogger(__name__)
 
 Until = Literal["frame", "curves", "models"]
+#: a progress callback of the T-spline fit: (round, the round's FitStats)
+FitProgress = Callable[[int, FitStats], None]
 STAGES: tuple[Until, ...] = ("frame", "curves", "models")
 MODELS = ("nurbs", "tspline")
 
@@ -90,6 +95,15 @@ class Reconstruction:
     out_dir: Path | None = None
     files: tuple[str, ...] = ()
     wall_s: float | None = None  # the whole run (stage times on the second core overlap)
+    views: tuple[ViewMesh, ...] = ()  # the 3-D view's meshes: the input, then each model (decimated)
+
+    def show(self):
+        """The report's interactive 3-D view in Jupyter (offline: three.js and the meshes inlined)."""
+        from IPython.display import HTML
+
+        page = f"<!DOCTYPE html><html><body>{viewer_html(list(self.views), self.frame.as_dict())}</body></html>"
+        return HTML(f"<iframe srcdoc='{html.escape(page, quote=True)}' style='width:100%;height:860px;border:0'>"
+                    "</iframe>")
 
     def figure(self, name: str) -> Path:
         """Path of an output figure, e.g. ``figure("nurbs_zebra.png")``."""
@@ -164,6 +178,7 @@ def reconstruct_bone(
     until: Until = "models",
     timings: Timings | None = None,
     executor: Executor | None = None,
+    progress: FitProgress | None = None,
 ) -> Reconstruction:
     """Run the stages from the frame up to ``until`` and write their files into ``out_dir``.
 
@@ -173,6 +188,7 @@ def reconstruct_bone(
     analysis figures, report.json and report.html.
     executor : where background jobs run (default: forked children when
     ``settings.pipeline.background_jobs`` and fork is possible, else in process).
+    progress : called with (round, FitStats) after each round of the T-spline fit (in this process).
     """
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got {until!r}")
@@ -201,7 +217,7 @@ def reconstruct_bone(
                 frame, contours, front_timings = front.result()
             timings.update(front_timings)
             frame_doc = FrameDocument(bone.summary(), frame)
-            result = _curves_and_models(bone, frame, contours, stage_dir, settings, models, timings, ex)
+            result = _curves_and_models(bone, frame, contours, stage_dir, settings, models, timings, ex, progress)
         # no timings (report.json and the log have them): the same input gives the same frame.json
         export("frame", frame_doc, stage_dir, only=["json"])
         files = tuple(sorted(p.name for p in stage_dir.iterdir()))
@@ -221,8 +237,8 @@ def frame_and_contours(bone: BoneMesh, settings: Settings
 
 
 def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: ContourSet, stage_dir: Path,
-                       settings: Settings, models: tuple[str, ...], timings: Timings, ex: Executor
-                       ) -> Reconstruction:
+                       settings: Settings, models: tuple[str, ...], timings: Timings, ex: Executor,
+                       progress: FitProgress | None) -> Reconstruction:
     """The contour curves' files, then the models with their analysis, figures and files, and the report."""
     noise = ex.submit(mesh_noise, bone, frame, settings) if "tspline" in models else None
     for name, summary in contours.summary().items():
@@ -233,17 +249,18 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
     export("curves", contours, stage_dir, only=["json"])
     built: dict[str, object] = {}
     reports: dict[str, ModelReport] = {}
+    views: dict[str, ViewMesh] = {}
     if "tspline" in models:
         from bonecad.tspline_model.model import build_tspline_model
 
         with timings.stage("T-spline model"):
             model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
                                         apex_hole_radius_mm=settings.curves.apex_hole_radius_mm,
-                                        noise_mm=None if noise is None else noise.result())
+                                        noise_mm=None if noise is None else noise.result(), progress=progress)
         with timings.stage("T-spline files"):
             export("tspline", model, stage_dir)
         with timings.stage("T-spline analysis"):
-            reports["tspline"] = analyse(
+            reports["tspline"], views["tspline"] = analyse(
                 "tspline", model, bone, frame, stage_dir, settings,
                 {"faces": len(model.face_names), **model.summary()}, ex)
         built["tspline"] = model
@@ -251,16 +268,25 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
         side_timings, nurbs = side.result()
     timings.update(side_timings)
     if nurbs is not None:
-        built["nurbs"], reports["nurbs"] = nurbs
+        built["nurbs"], reports["nurbs"], views["nurbs"] = nurbs
+    views_in_order: tuple[ViewMesh, ...] = ()
     if models:
+        with timings.stage("3-D view"):
+            shown = [m for m in MODELS if m in reports]
+            deviations = {m: dev.vertex_deviation_mm for m in shown if (dev := reports[m].deviation) is not None}
+            views_in_order = (input_view(bone.vertices, bone.faces, deviations,
+                                         settings.analysis.view_max_triangles),
+                              *(views[m] for m in shown))
         with timings.stage("report"):
             doc = ReportDocument(input_summary={**bone.summary(), "side": frame.side}, frame=frame.as_dict(),
                                  models=tuple(reports[m] for m in MODELS if m in reports),
-                                 timings_s={**timings.seconds, "total (wall)": timings.wall_s()})
+                                 timings_s={**timings.seconds, "total (wall)": timings.wall_s()},
+                                 tolerances=Tolerances.of(settings.tspline), contours=contours,
+                                 viewer=viewer_html(list(views_in_order), frame.as_dict()))
             export("report", doc, stage_dir)
     return Reconstruction(bone=bone, frame=frame, contours=contours,
                           models={m: built[m] for m in MODELS if m in built},
-                          reports={m: reports[m] for m in MODELS if m in reports})
+                          reports={m: reports[m] for m in MODELS if m in reports}, views=views_in_order)
 
 
 def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: Settings) -> np.ndarray:
@@ -271,7 +297,7 @@ def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: Settings) -> np
 
 
 def curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path, settings: Settings,
-                          nurbs: bool) -> tuple[dict[str, float], tuple[object, ModelReport] | None]:
+                          nurbs: bool) -> tuple[dict[str, float], tuple[object, ModelReport, ViewMesh] | None]:
     """curves.step, curves.iges, curves.png, then (``nurbs``) the NURBS model, its files, analysis and
     figures, all in this process. Returns (stage timings, (model, report) or None)."""
     from bonecad.nurbs_model.model import build_nurbs
@@ -287,19 +313,23 @@ def curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path,
         model = build_nurbs(contours, settings=settings.nurbs)
         export("nurbs", model, stage_dir)
     with timings.stage("NURBS analysis"):
-        report = analyse("nurbs", model, bone, contours.frame, stage_dir, settings, model.summary(), InProcess())
-    return timings.seconds, (model, report)
+        report, view = analyse("nurbs", model, bone, contours.frame, stage_dir, settings, model.summary(),
+                               InProcess())
+    return timings.seconds, (model, report, view)
 
 
 def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: Path, settings: Settings,
-            info: dict, ex: Executor) -> ModelReport:
+            info: dict, ex: Executor) -> tuple[ModelReport, ViewMesh]:
     """Deviation, continuity and the figures ``{name}_deviation.png``, ``{name}_histogram.png`` and
-    ``{name}_zebra.png`` of one model; zebra and continuity, and the colour map, as background jobs."""
+    ``{name}_zebra.png`` of one model, and its mesh for the 3-D view; zebra and continuity, the colour
+    map and the view's mesh as background jobs."""
     from bonecad.render.figures import deviation_map_png, histogram_png
 
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     tess = tessellate_model(model.shape, settings.analysis)
     side = ex.submit(zebra_and_continuity, name, model, tess, out_dir, view_frame, settings)
+    view = ex.submit(model_view, name, tess.vertices, tess.triangles, bone.vertices, bone.faces,
+                     settings.analysis.view_max_triangles)
     deviation = model_deviation(tess, bone, frame, settings.analysis)
     colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", bone.vertices, bone.faces,
                            deviation.vertex_deviation_mm, view_frame,
@@ -311,7 +341,9 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     )
     zebra, (continuity, knots) = side.result()
     figures = {"deviation": colour_map.result(), "histogram": histogram, "zebra": zebra}
-    return ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots, figures=figures)
+    report = ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots,
+                         figures=figures)
+    return report, view.result()
 
 
 def zebra_and_continuity(name: str, model, tess, out_dir: Path, view_frame: np.ndarray, settings: Settings):
@@ -330,19 +362,23 @@ def reconstruct(
     until: Until = "models",
     units: Units = "auto",
     executor: Executor | None = None,
+    progress: FitProgress | None = None,
 ) -> Reconstruction:
     """The whole pipeline on a mesh file or CT volume; outputs in ``out_dir`` (a new temporary folder if
-    None); ``settings`` default to the shipped ones (``Settings.load()``)."""
+    None); ``settings`` default to the shipped ones (``Settings.load()``); ``progress``: see
+    :func:`reconstruct_bone`."""
     settings = settings if settings is not None else Settings.load()
     timings = Timings()
     if out_dir is None:
         out_dir = Path(tempfile.mkdtemp(prefix="bonecad-"))
     with timings.stage("input"):
         bone = load_input(source, settings, units=units)
-    return reconstruct_bone(bone, out_dir, settings, until=until, timings=timings, executor=executor)
+    return reconstruct_bone(bone, out_dir, settings, until=until, timings=timings, executor=executor,
+                            progress=progress)
 
 
-def run_demo(out_dir: str | Path, settings: Settings | None = None) -> Reconstruction:
+def run_demo(out_dir: str | Path, settings: Settings | None = None, progress: FitProgress | None = None
+             ) -> Reconstruction:
     """``bonecad demo``: the embedded phantom as a real case starts, from its CT, through every stage.
 
     Writes the phantom's mesh (phantom.stl) and its synthetic CT (0.8 mm voxels,
@@ -365,7 +401,7 @@ def run_demo(out_dir: str | Path, settings: Settings | None = None) -> Reconstru
         with timings.stage("segmentation of the phantom CT"):
             # named by where the series will be, not by the staging folder
             bone = replace(load_input(dicom, settings), source=str(Path(out_dir) / dicom.name))
-        result = reconstruct_bone(bone, stage_dir, settings, timings=timings)
+        result = reconstruct_bone(bone, stage_dir, settings, timings=timings, progress=progress)
     return replace(result, out_dir=Path(out_dir))
 
 

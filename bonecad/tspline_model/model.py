@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,8 +35,8 @@ from bonecad.settings import TSplineSettings
 from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
-from bonecad.splines.tspline.fit import (FitResult, FitTolerances, fit_adaptive, initial_parameters, local_noise_mm,
-                                         voxel_step_mm)
+from bonecad.splines.tspline.fit import (FitResult, FitStats, FitTolerances, fit_adaptive, initial_parameters,
+                                         local_noise_mm, voxel_step_mm)
 from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger(__name__)
@@ -205,6 +206,7 @@ def build_tspline_model(
     settings: TSplineSettings,
     apex_hole_radius_mm: float,
     noise_mm: np.ndarray | None = None,
+    progress: Callable[[int, FitStats], None] | None = None,
 ) -> TSplineModel:
     """Skin, fit, refine, cap and convert: the T-spline model of a tibia.
 
@@ -213,6 +215,7 @@ def build_tspline_model(
     apex_hole_radius_mm : the contour curves' apex hole radius.
     noise_mm : ``mesh_noise_mm`` of the same bone, frame and settings, when the
         caller measured it already (the runner does, on the second core).
+    progress : called with (round, FitStats) after each round of the fit (the runner's progress bar).
     Raises FitError when a stage cannot produce a usable surface, KernelError
     when OpenCascade cannot make a valid closed solid of it.
     """
@@ -245,7 +248,7 @@ def build_tspline_model(
         noise_mm = mesh_noise_mm(bone, frame, st)
     noise = noise_mm[keep]
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
-                       constraints=rings, noise=noise)
+                       constraints=rings, noise=noise, progress=progress)
     timings["fit"] = time.perf_counter() - clock
     if not fit.converged:
         staircase = f"; the mesh is a {voxel:.2f} mm voxel staircase" if voxel else ""

@@ -27,6 +27,7 @@ knows nothing of bones.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -536,6 +537,7 @@ def fit_adaptive(
     constraints: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
     frozen=None,
     noise: np.ndarray | None = None,
+    progress: Callable[[int, FitStats], None] | None = None,
 ) -> FitResult:
     """Fit ``ts`` to points, refining until the tolerances hold or the budget is spent.
 
@@ -550,6 +552,8 @@ def fit_adaptive(
         bool of elements never to refine.
     noise : optional (n,) mm, the data's local noise level (``local_noise_mm``);
         points within ``tolerances.noise_factor`` times it never ask for refinement.
+    progress : optional function called with (round, its FitStats) after each round (the caller's
+        progress bar; at most ``tolerances.max_rounds + 1`` rounds).
     """
     tol = tolerances
     if mode not in ("local", "global"):
@@ -575,6 +579,8 @@ def fit_adaptive(
         stats = fit_stats(ts, dist, w, tol.share_within[1])
         history.append(stats)
         log.info("T-spline fit (%s) round %d: %s", mode, round_, stats.to_dict())
+        if progress is not None:
+            progress(round_, stats)
         if stats.meets(tol):
             return FitResult(ts, s, t, dist, stats, history, True, "tolerances met")
         stalled = None if noise_mm is None else dist <= noise_mm

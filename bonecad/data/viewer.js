@@ -1,0 +1,105 @@
+// report.html's 3-D view (bonecad.export.viewer): decodes the embedded meshes, colours them by
+// signed deviation, orbits/zooms with three.js TrackballControls, toggles meshes and frame axes.
+(function () {
+  const data = JSON.parse(document.getElementById('view-data').textContent);
+  const canvas = document.getElementById('view-canvas');
+  const renderer = new THREE.WebGLRenderer({canvas: canvas, antialias: true, preserveDrawingBuffer: true});
+  renderer.setClearColor(0xffffff, 1);
+  const scene = new THREE.Scene();
+  const decode = (b64, Type) => {
+    const bytes = Uint8Array.from(atob(b64), c => c.charCodeAt(0));
+    return new Type(bytes.buffer);
+  };
+  const frame = data.frame;
+  const lateral = frame ? new THREE.Vector3(...frame.lateral) : new THREE.Vector3(1, 0, 0);
+  const anterior = frame ? new THREE.Vector3(...frame.anterior) : new THREE.Vector3(0, 1, 0);
+  const proximal = frame ? new THREE.Vector3(...frame.proximal) : new THREE.Vector3(0, 0, 1);
+  let limit = data.limit_mm;
+  // diverging blue - white - red (ColorBrewer RdBu ends)
+  const colour = (d, out, i) => {
+    const t = Math.max(-1, Math.min(1, d / limit));
+    const lo = [33, 102, 172], mid = [247, 247, 247], hi = [178, 24, 43];
+    const end = t < 0 ? lo : hi, a = Math.abs(t);
+    for (let k = 0; k < 3; k++) out[3 * i + k] = (mid[k] + (end[k] - mid[k]) * a) / 255;
+  };
+  // screen right when seen from the front with proximal up: the meshes' row runs along it
+  const right = new THREE.Vector3().crossVectors(anterior.clone().negate(), proximal).normalize();
+  const meshes = [];
+  let offset = 0, widest = 0;
+  const box = new THREE.Box3();
+  data.meshes.forEach((m) => {
+    const geometry = new THREE.BufferGeometry();
+    const positions = decode(m.positions, Float32Array);
+    geometry.setAttribute('position', new THREE.BufferAttribute(positions, 3));
+    geometry.setIndex(new THREE.BufferAttribute(decode(m.indices, Uint32Array), 1));
+    geometry.computeVertexNormals();
+    geometry.setAttribute('color', new THREE.BufferAttribute(new Float32Array(positions.length), 3));
+    const deviation = {};
+    for (const k in m.deviation) deviation[k] = decode(m.deviation[k], Float32Array);
+    const material = new THREE.MeshLambertMaterial({vertexColors: true, side: THREE.DoubleSide});
+    const mesh = new THREE.Mesh(geometry, material);
+    geometry.computeBoundingBox();
+    const b = geometry.boundingBox;
+    const corners = [];
+    for (let c = 0; c < 8; c++) corners.push(new THREE.Vector3(c & 1 ? b.max.x : b.min.x,
+      c & 2 ? b.max.y : b.min.y, c & 4 ? b.max.z : b.min.z).dot(right));
+    widest = Math.max(widest, Math.max(...corners) - Math.min(...corners));
+    meshes.push({mesh: mesh, deviation: deviation});
+    scene.add(mesh);
+  });
+  meshes.forEach((m, i) => {
+    m.mesh.position.copy(right.clone().multiplyScalar(1.25 * widest * i));
+    box.expandByObject(m.mesh);
+  });
+  const axes = new THREE.Group();
+  if (frame) {
+    const origin = new THREE.Vector3(...frame.origin);
+    const length = 0.25 * box.getSize(new THREE.Vector3()).length();
+    [[lateral, 0xd62728], [anterior, 0x2ca02c], [proximal, 0x1f77b4]].forEach(([axis, hex]) => {
+      const g = new THREE.BufferGeometry().setFromPoints([origin, origin.clone().add(axis.clone().multiplyScalar(length))]);
+      axes.add(new THREE.Line(g, new THREE.LineBasicMaterial({color: hex})));
+    });
+    scene.add(axes);
+  }
+  const recolour = () => {
+    const which = document.getElementById('colour-by').value;
+    meshes.forEach((m) => {
+      const d = m.deviation[which] || Object.values(m.deviation)[0];
+      const c = m.mesh.geometry.getAttribute('color');
+      for (let i = 0; i < d.length; i++) colour(d[i], c.array, i);
+      c.needsUpdate = true;
+    });
+    document.getElementById('scale-lo').textContent = (-limit).toFixed(2);
+    document.getElementById('scale-hi').textContent = '+' + limit.toFixed(2);
+  };
+  scene.add(new THREE.AmbientLight(0xffffff, 0.45));
+  const light = new THREE.DirectionalLight(0xffffff, 0.7);
+  scene.add(light);
+  const sphere = box.getBoundingSphere(new THREE.Sphere());
+  const camera = new THREE.PerspectiveCamera(30, canvas.width / canvas.height, sphere.radius / 100, sphere.radius * 20);
+  const controls = new THREE.TrackballControls(camera, canvas);
+  camera.up.copy(proximal);
+  camera.position.copy(sphere.center.clone().add(anterior.clone().multiplyScalar(3.3 * sphere.radius)));
+  controls.target.copy(sphere.center);
+  controls.update();
+  controls.rotateSpeed = 2.0;
+  const render = () => { light.position.copy(camera.position); renderer.render(scene, camera); };
+  controls.addEventListener('change', render);
+  const animate = () => { requestAnimationFrame(animate); controls.update(); };
+  document.querySelectorAll('#viewer3d input[data-mesh]').forEach((box) => box.addEventListener('change', () => {
+    meshes[Number(box.dataset.mesh)].mesh.visible = box.checked; render();
+  }));
+  document.getElementById('show-frame').addEventListener('change', (e) => { axes.visible = e.target.checked; render(); });
+  const limitInput = document.getElementById('colour-limit');
+  limitInput.value = limit.toFixed(2);
+  limitInput.addEventListener('change', () => {
+    const v = parseFloat(limitInput.value);
+    if (v > 0) { limit = v; recolour(); render(); }
+  });
+  document.getElementById('colour-by').addEventListener('change', () => { recolour(); render(); });
+  recolour();
+  render();
+  animate();
+  canvas.dataset.drawn = 'yes';
+  canvas.dataset.drawnMs = Math.round(performance.now());  // since navigation start: the page's load and first frame
+})();

@@ -1,0 +1,150 @@
+"""The report's interactive 3-D view: offline, self-contained HTML (three.js inlined, no network).
+
+The meshes (the input mesh and each model's tessellation, decimated to
+``[analysis] view_max_triangles``) are embedded as base64 float32/uint32 arrays
+with their signed deviation per vertex (mm, positive = mesh outside the CAD
+model). The page colours them on a diverging scale (blue inside, red outside,
+symmetric about 0, the limit editable), lays them side by side as seen from the
+front, draws the anatomical frame's axes, and orbits/zooms with the mouse
+(three.js TrackballControls); a checkbox per mesh shows or hides it.
+
+three.js (r140, MIT) is the copy trimesh bundles for its notebook viewer.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import zipfile
+from dataclasses import dataclass
+
+import numpy as np
+
+from bonecad.mesh.closest import TriangleLocator, vertex_normals
+
+
+@dataclass(frozen=True)
+class ViewMesh:
+    """One mesh of the 3-D view: vertices (n, 3) mm, triangles (m, 3), and per vertex the signed
+    deviation of each named comparison (mm, positive = mesh outside the CAD model)."""
+
+    name: str
+    vertices: np.ndarray
+    triangles: np.ndarray
+    deviation_mm: dict[str, np.ndarray]
+
+
+def decimate(vertices: np.ndarray, triangles: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:
+    """Coincident vertices merged (a tessellation's face borders), then quadric edge-collapse
+    decimation to at most about ``max_triangles`` triangles (pymeshlab); deterministic."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles, dtype=np.int32)))
+    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(0.0001))
+    if ms.current_mesh().face_number() > max_triangles:
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(max_triangles), preservenormal=True,
+                                                    planarquadric=True, qualitythr=0.5)
+    out = ms.current_mesh()
+    return out.vertex_matrix(), out.face_matrix()
+
+
+def deviation_at(points: np.ndarray, bone_vertices: np.ndarray, bone_faces: np.ndarray) -> np.ndarray:
+    """(N,) signed deviation (mm) at points of a CAD model's surface: their distance to the bone mesh,
+    positive where the mesh lies outside the model (the sign convention of ``analysis.deviation``)."""
+    near = TriangleLocator(bone_vertices, bone_faces).query(points)
+    normal = np.einsum("nk,nkj->nj", near.barycentric,
+                       vertex_normals(bone_vertices, bone_faces)[bone_faces[near.triangle]])
+    outside = np.einsum("ij,ij->i", points - near.points, normal) > 0
+    return np.where(outside, -near.distance, near.distance)
+
+
+def model_view(name: str, vertices: np.ndarray, triangles: np.ndarray, bone_vertices: np.ndarray,
+               bone_faces: np.ndarray, max_triangles: int) -> ViewMesh:
+    """A model's tessellation, decimated, coloured by its deviation from the bone mesh."""
+    v, f = decimate(vertices, triangles, max_triangles)
+    return ViewMesh(name, v, f, {name: deviation_at(v, bone_vertices, bone_faces)})
+
+
+def input_view(bone_vertices: np.ndarray, bone_faces: np.ndarray, vertex_deviation_mm: dict[str, np.ndarray],
+               max_triangles: int) -> ViewMesh:
+    """The input mesh, decimated; each model's vertex deviation carried over from the nearest original
+    vertex (``vertex_deviation_mm``: model name -> (n,) mm at the bone's vertices)."""
+    from scipy.spatial import cKDTree
+
+    v, f = decimate(bone_vertices, bone_faces, max_triangles)
+    _, nearest = cKDTree(bone_vertices).query(v)
+    return ViewMesh("input mesh", v, f, {k: np.asarray(d)[nearest] for k, d in vertex_deviation_mm.items()})
+
+
+def three_js() -> str:
+    """three.js r140 with TrackballControls: the script trimesh bundles for its notebook viewer."""
+    from trimesh import resources
+
+    with zipfile.ZipFile(io.BytesIO(resources.get_bytes("templates/viewer.zip"))) as archive:
+        template = archive.read("viewer.html.template").decode("utf-8")
+    start = template.index("<script>") + len("<script>")
+    end = template.index("var camera,controls,scene")  # trimesh's own viewer code follows
+    return template[start:end]
+
+
+def _viewer_js() -> str:
+    """The view's own script (``data/viewer.js``)."""
+    from importlib import resources
+
+    return resources.files("bonecad").joinpath("data/viewer.js").read_text()
+
+
+def _b64(array: np.ndarray, dtype) -> str:
+    return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")
+
+
+def scene_json(meshes: list[ViewMesh], frame: dict, limit_mm: float) -> str:
+    """The view's data as JSON: meshes (base64 arrays), the frame's origin and axes, the colour limit."""
+    bone = frame.get("bone_frame", {})
+    data = {
+        "limit_mm": limit_mm,
+        "frame": {k: bone.get(k) for k in ("origin", "lateral", "anterior", "proximal")} if bone else None,
+        "meshes": [{"name": m.name, "positions": _b64(m.vertices, "<f4"), "indices": _b64(m.triangles, "<u4"),
+                    "deviation": {k: _b64(d, "<f4") for k, d in m.deviation_mm.items()}} for m in meshes],
+    }
+    return json.dumps(data)
+
+
+def colour_limit_mm(meshes: list[ViewMesh]) -> float:
+    """The colour scale's limit: the 99th percentile of |deviation| over all meshes, up to 0.05 mm steps."""
+    values = np.concatenate([np.abs(d) for m in meshes for d in m.deviation_mm.values()] or [np.zeros(1)])
+    return float(max(0.05, np.ceil(np.percentile(values, 99) / 0.05) * 0.05))
+
+
+def viewer_html(meshes: list[ViewMesh], frame: dict) -> str:
+    """The 3-D view as an HTML fragment (a canvas, controls, three.js and the data inlined)."""
+    if not meshes:
+        return ""
+    toggles = "".join(
+        f"<label style='margin-right:1.2em'><input type='checkbox' checked data-mesh='{i}'> "
+        f"{html.escape(m.name)}</label>"
+        for i, m in enumerate(meshes))
+    choices = list(dict.fromkeys(k for m in meshes for k in m.deviation_mm))
+    colour_by = "".join(f"<option value='{html.escape(k)}'{' selected' if k == choices[-1] else ''}>"
+                        f"{html.escape(k)}</option>" for k in choices)
+    return (
+        "<div id='viewer3d'>"
+        "<p>Left to right, seen from the front: " + ", ".join(html.escape(m.name) for m in meshes)
+        + ". Drag to orbit, wheel to zoom, right-drag to pan. Colour: signed deviation, mm "
+        "(red = mesh outside the CAD model, blue = inside); the input mesh is coloured by its deviation from "
+        f"the model chosen here: <select id='colour-by'>{colour_by}</select></p>"
+        f"<p>{toggles}<label style='margin-right:1.2em'>colour limit, mm "
+        "<input id='colour-limit' type='number' step='0.05' min='0.01' "
+        "style='width:5em'></label> <label><input type='checkbox' id='show-frame' checked> frame axes</label></p>"
+        "<div style='position:relative'><canvas id='view-canvas' width='1200' height='700' "
+        "style='width:100%;max-width:1200px;border:1px solid #999;background:#fff'></canvas>"
+        "<div id='colour-scale' style='display:flex;align-items:center;gap:6px;margin-top:4px'>"
+        "<span id='scale-lo'></span><span style='display:inline-block;width:300px;height:14px;"
+        "background:linear-gradient(to right,rgb(33,102,172),rgb(247,247,247),rgb(178,24,43))'></span>"
+        "<span id='scale-hi'></span><span>mm</span></div></div>"
+        f"<script>{three_js()}</script>"
+        f"<script id='view-data' type='application/json'>{scene_json(meshes, frame, colour_limit_mm(meshes))}"
+        f"</script><script>{_viewer_js()}</script></div>"
+    )
