@@ -301,7 +301,8 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     tess = tessellate_model(model.shape, settings.analysis)
     side = ex.submit(zebra_and_continuity, name, model, tess, out_dir, view_frame, settings)
     deviation = model_deviation(tess, bone, frame, settings.analysis)
-    colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", bone.vertices, bone.faces,
+    shown = bone.work  # the colour map draws the working copy (its vertices' deviations)
+    colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", shown.vertices, shown.faces,
                            deviation.vertex_deviation_mm, view_frame,
                            title=f"{name}: deviation of the mesh from the CAD model, mm")
     histogram = histogram_png(
