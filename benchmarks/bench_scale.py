@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import subprocess
 import sys
 import tempfile
@@ -74,8 +75,10 @@ def _tree_pss_bytes(proc: psutil.Process) -> int:
     return total
 
 
-def reconstruct(mesh: Path, out: Path) -> tuple[float, float]:
-    """Run ``bonecad reconstruct`` on ``mesh`` into ``out``; (wall s, peak PSS of the process tree GB)."""
+def reconstruct(mesh: Path, out: Path) -> tuple[float, float, float]:
+    """Run ``bonecad reconstruct`` on ``mesh`` into ``out``; (wall s, CPU s of the process tree, peak PSS of
+    the process tree GB)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-m", "bonecad.run.cli", "reconstruct", str(mesh), "--out", str(out),
                              "-q"], stdout=subprocess.DEVNULL)
@@ -88,9 +91,11 @@ def reconstruct(mesh: Path, out: Path) -> tuple[float, float]:
             break
         time.sleep(0.1)
     wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         sys.exit(f"bonecad reconstruct {mesh} failed (exit {proc.returncode})")
-    return wall, peak / 1e9
+    cpu = after.ru_utime + after.ru_stime - usage.ru_utime - usage.ru_stime
+    return wall, cpu, peak / 1e9
 
 
 def stage_seconds(report: dict) -> dict[str, float]:
@@ -130,20 +135,20 @@ def main() -> None:
         for level in levels:
             mesh = subdivided_mesh(args.mesh, level, folder)
             out = Path(tmp) / f"out{level}"
-            wall, peak_gb = reconstruct(mesh, out)
+            wall, cpu, peak_gb = reconstruct(mesh, out)
             report = json.loads((out / "report.json").read_text())
             read = sum(body["triangles"] for body in report["input"]["bodies"])
-            rows.append((read, report["input"]["triangles"], wall, peak_gb, stage_seconds(report),
+            rows.append((read, report["input"]["triangles"], wall, cpu, peak_gb, stage_seconds(report),
                          deviation_figures(report)))
-            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall:.1f} s, {peak_gb:.2f} GB", file=sys.stderr,
+            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall:.1f} s wall, {cpu:.1f} s CPU, {peak_gb:.2f} GB", file=sys.stderr,
                   flush=True)
     groups = list(STAGE_GROUPS)
     models = sorted({m for row in rows for m in row[-1]})
-    print("| triangles (file, cleaned) | tibia | wall s | peak GB | " + " | ".join(groups) + " | "
+    print("| triangles (file, cleaned) | tibia | wall s | CPU s | peak GB | " + " | ".join(groups) + " | "
           + " | ".join(f"{m} % within 0.2 / 0.3 mm, RMS mm" for m in models) + " |")
-    print("|" + "---|" * (4 + len(groups) + len(models)))
-    for read, triangles, wall, peak, stages, figures in rows:
-        cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f}", f"{peak:.2f}", *(f"{stages[g]:.1f}" for g in groups),
+    print("|" + "---|" * (5 + len(groups) + len(models)))
+    for read, triangles, wall, cpu, peak, stages, figures in rows:
+        cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f}", f"{cpu:.1f}", f"{peak:.2f}", *(f"{stages[g]:.1f}" for g in groups),
                  *(f"{100 * figures[m][0]:.2f} / {100 * figures[m][1]:.2f}, {figures[m][2]:.4f}" if m in figures else "-"
                    for m in models)]
         print("| " + " | ".join(cells) + " |")

@@ -22,8 +22,8 @@ from bonecad.errors import InputError
 from bonecad.mesh.bodies import body_roles, body_shape, check_not_fused, choose_tibia, proximal_direction
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 from bonecad.mesh.sampling import triangle_areas
-from bonecad.mesh.topology import (duplicate_faces, edge_counts, merge_duplicate_vertices, non_manifold_vertices,
-                                   signed_volumes, vertex_components)
+from bonecad.mesh.topology import (EdgeCounts, duplicate_faces, edge_counts, merge_duplicate_vertices,
+                                   non_manifold_vertices, signed_volumes, vertex_components)
 from bonecad.mesh.working import with_working_copy
 from bonecad.settings import MeshSettings, UnitsSettings
 
@@ -65,8 +65,8 @@ def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _read_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (n, 3) float64 and faces (m, 3) int64 of a mesh file, by trimesh's reader for its format
-    (no Trimesh object: its copies and caches cost more than the reading on a dense mesh)."""
+    """Vertices (n, 3) (float32 or float64, as stored) and faces (m, 3) int64 of a mesh file, by trimesh's
+    reader for its format (no Trimesh object: its copies and caches cost more than the reading on a dense mesh)."""
     from trimesh.exchange.load import mesh_loaders
 
     file_type = path.suffix.lower()[1:]
@@ -77,13 +77,14 @@ def _read_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if not parts:
         return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64)
     offsets = np.cumsum([0] + [len(p["vertices"]) for p in parts[:-1]])
-    vertices = np.concatenate([np.asarray(p["vertices"], dtype=np.float64).reshape(-1, 3) for p in parts])
+    vertices = np.concatenate([np.asarray(p["vertices"]).reshape(-1, 3) for p in parts])
     faces = np.concatenate([np.asarray(p["faces"], dtype=np.int64) + o for p, o in zip(parts, offsets)])
     return vertices, faces
 
 
-def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Cleanup; returns the cleaned arrays and a list of what was repaired.
+def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
+           ) -> tuple[np.ndarray, np.ndarray, EdgeCounts, list[str]]:
+    """Cleanup; returns the cleaned arrays (vertices float64), their edges and a list of what was repaired.
 
     Duplicate vertices and faces, degenerate faces and unreferenced vertices
     are removed here (vectorised); a mesh with border or non-manifold edges or
@@ -97,24 +98,21 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int) -> tupl
 
     size = (len(vertices), len(faces))
     vertices, faces = merge_duplicate_vertices(vertices, faces)
+    vertices = vertices.astype(np.float64)
     note("merged duplicate vertices", size, size := (len(vertices), len(faces)))
     faces = faces[~duplicate_faces(faces)]
     note("removed duplicate faces", size, size := (len(vertices), len(faces)))
     faces = faces[triangle_areas(vertices, faces) > 0]
     note("removed degenerate (zero-area) faces", size, size := (len(vertices), len(faces)))
-    if not _needs_repair(faces, len(vertices)):
-        used = np.zeros(len(vertices), dtype=bool)
-        used[faces] = True
-        vertices, faces = vertices[used], (np.cumsum(used) - 1)[faces]
-        note("removed unreferenced vertices", size, (len(vertices), len(faces)))
-        return vertices, faces, repairs
-    return (*_meshlab_repairs(vertices, faces, max_hole_edges, note), repairs)
-
-
-def _needs_repair(faces: np.ndarray, vertex_count: int) -> bool:
-    """A border edge, a non-manifold edge or a non-manifold vertex."""
-    edges = edge_counts(faces, vertex_count)
-    return bool(edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(faces, edges))
+    used = np.zeros(len(vertices), dtype=bool)
+    used[faces] = True
+    vertices, faces = vertices[used], (np.cumsum(used) - 1)[faces]
+    note("removed unreferenced vertices", size, (len(vertices), len(faces)))
+    edges = edge_counts(faces, len(vertices))
+    if edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(faces, edges):
+        vertices, faces = _meshlab_repairs(vertices, faces, max_hole_edges, note)
+        edges = edge_counts(faces, len(vertices))
+    return vertices, faces, edges, repairs
 
 
 def _meshlab_repairs(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, note
@@ -149,10 +147,9 @@ class _Body:
     watertight: bool  # every edge shared by two faces
 
 
-def _bodies(vertices: np.ndarray, faces: np.ndarray) -> list[_Body]:
+def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts) -> list[_Body]:
     """Split into connected bodies, each oriented coherently and outward; largest volume first."""
     count, vertex_body = vertex_components(faces, len(vertices))
-    edges = edge_counts(faces, len(vertices))
     edge_body = vertex_body[edges.low_vertex()]
     open_bodies = np.bincount(edge_body[edges.faces_per_edge != 2], minlength=count) > 0
     incoherent = np.bincount(edge_body[~edges.consistent], minlength=count) > 0
@@ -170,8 +167,9 @@ def _bodies(vertices: np.ndarray, faces: np.ndarray) -> list[_Body]:
         body_faces = faces[face_order[face_bounds[b] : face_bounds[b + 1]]]
         if len(body_faces) == 0:
             continue
-        used, local = np.unique(body_faces, return_inverse=True)
-        body_vertices, body_faces = vertices[used], local.reshape(-1, 3)
+        used = np.zeros(len(vertices), dtype=bool)
+        used[body_faces] = True
+        body_vertices, body_faces = vertices[used], (np.cumsum(used) - 1)[body_faces]
         volume = float(volumes[b])
         if incoherent[b]:
             volume = _orient_coherently(body_vertices, body_faces)
@@ -255,8 +253,8 @@ def prepare_bone(
 
     plausible : the tibia length range that tells the units."""
     path = Path(source) if source else None
-    vertices, faces, repairs = _clean(vertices, faces, settings.max_hole_edges)
-    bodies = _bodies(vertices, faces)
+    vertices, faces, edges, repairs = _clean(vertices, faces, settings.max_hole_edges)
+    bodies = _bodies(vertices, faces, edges)
     if not bodies or bodies[0].volume <= 0:
         raise InputError("has no closed body with a volume", path)
 

@@ -19,7 +19,7 @@ import numpy as np
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.closest import TriangleLocator
 from bonecad.mesh.sampling import triangle_areas
-from bonecad.mesh.topology import is_closed_and_oriented
+from bonecad.mesh.topology import first_of_equal_rows, is_closed_and_oriented
 from bonecad.settings import MeshSettings
 
 log = logging.getLogger(__name__)
@@ -37,12 +37,20 @@ def working_triangles(vertices: np.ndarray, faces: np.ndarray, settings: MeshSet
 
 
 def simplified(vertices: np.ndarray, faces: np.ndarray, triangles: int) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh simplified by quadric edge collapse to about ``triangles`` triangles (vertices mm, faces)."""
+    """The mesh simplified by quadric edge collapse to about ``triangles`` triangles (vertices mm, faces).
+
+    An edge collapse can leave two faces on the same three vertices (a fin of
+    no volume, one in a million): both are dropped, with the vertices no face uses.
+    """
     import fast_simplification
 
     points, kept = fast_simplification.simplify(np.ascontiguousarray(vertices, dtype=np.float64),
                                                 np.ascontiguousarray(faces, dtype=np.int64), target_count=triangles)
-    return np.asarray(points, dtype=np.float64), np.asarray(kept, dtype=np.int64)
+    first = first_of_equal_rows(np.sort(kept, axis=1))
+    kept = kept[np.bincount(first, minlength=len(kept))[first] == 1]
+    used = np.zeros(len(points), dtype=bool)
+    used[kept] = True
+    return np.asarray(points[used], dtype=np.float64), (np.cumsum(used) - 1)[kept].astype(np.int64)
 
 
 def with_working_copy(bone: BoneMesh, settings: MeshSettings) -> BoneMesh:
@@ -54,12 +62,12 @@ def with_working_copy(bone: BoneMesh, settings: MeshSettings) -> BoneMesh:
     target = working_triangles(bone.vertices, bone.faces, settings)
     while target is not None:
         vertices, faces = simplified(bone.vertices, bone.faces, target)
-        worst = float(TriangleLocator(vertices, faces).query(bone.vertices).distance.max())
         closed = is_closed_and_oriented(faces)
-        if closed and worst <= settings.working_max_deviation_mm:
+        worst = float(TriangleLocator(vertices, faces).distance(bone.vertices).max()) if closed else np.inf
+        if worst <= settings.working_max_deviation_mm:
             break
-        log.info("a working copy of %d triangles lies %.3f mm from the mesh%s: doubling it", len(faces), worst,
-                 "" if closed else " and is not closed")
+        log.info("a working copy of %d triangles %s: doubling it", len(faces),
+                 f"lies {worst:.3f} mm from the mesh" if closed else "is not closed")
         target *= 2
         if bone.triangle_count <= settings.working_density_factor * target:
             target = None
