@@ -103,19 +103,20 @@ def stage_seconds(report: dict) -> dict[str, float]:
     return {group: sum(timings.get(name, 0.0) for name in names) for group, names in STAGE_GROUPS.items()}
 
 
+def share_within(histogram: dict, limit_mm: float) -> float:
+    """Share of the surface in the histogram's bands within +-``limit_mm`` (a band edge)."""
+    edges = np.asarray(histogram["edges_mm"])
+    shares = np.asarray(histogram["shares"])[1:-1]  # the bands, without under- and overflow
+    return float(shares[(edges[:-1] >= -limit_mm - 1e-9) & (edges[1:] <= limit_mm + 1e-9)].sum())
+
+
 def deviation_figures(report: dict) -> dict[str, tuple[float, float, float]]:
     """Per model, mesh -> CAD: shares of the surface within 0.2 and 0.3 mm of the model (the histogram's
     band edges nearest the 0.25 mm tolerance) and the RMS (mm)."""
     out = {}
     for name, model in report["models"].items():
         m2c = model["deviation"]["mesh_to_cad"]
-        edges = np.asarray(m2c["histogram"]["edges_mm"])
-        shares = np.asarray(m2c["histogram"]["shares"])[1:-1]  # the bands, without under- and overflow
-
-        def within(limit: float) -> float:
-            return float(shares[(edges[:-1] >= -limit - 1e-9) & (edges[1:] <= limit + 1e-9)].sum())
-
-        out[name] = (within(0.2), within(0.3), m2c["stats"]["rms_mm"])
+        out[name] = (share_within(m2c["histogram"], 0.2), share_within(m2c["histogram"], 0.3), m2c["stats"]["rms_mm"])
     return out
 
 
@@ -140,17 +141,18 @@ def main() -> None:
             read = sum(body["triangles"] for body in report["input"]["bodies"])
             rows.append((read, report["input"]["triangles"], wall, cpu, peak_gb, stage_seconds(report),
                          deviation_figures(report)))
-            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall:.1f} s wall, {cpu:.1f} s CPU, {peak_gb:.2f} GB", file=sys.stderr,
-                  flush=True)
+            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall:.1f} s wall, {cpu:.1f} s CPU, "
+                  f"{peak_gb:.2f} GB", file=sys.stderr, flush=True)
     groups = list(STAGE_GROUPS)
     models = sorted({m for row in rows for m in row[-1]})
     print("| triangles (file, cleaned) | tibia | wall s | CPU s | peak GB | " + " | ".join(groups) + " | "
           + " | ".join(f"{m} % within 0.2 / 0.3 mm, RMS mm" for m in models) + " |")
     print("|" + "---|" * (5 + len(groups) + len(models)))
     for read, triangles, wall, cpu, peak, stages, figures in rows:
-        cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f}", f"{cpu:.1f}", f"{peak:.2f}", *(f"{stages[g]:.1f}" for g in groups),
-                 *(f"{100 * figures[m][0]:.2f} / {100 * figures[m][1]:.2f}, {figures[m][2]:.4f}" if m in figures else "-"
-                   for m in models)]
+        cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f}", f"{cpu:.1f}", f"{peak:.2f}",
+                 *(f"{stages[g]:.1f}" for g in groups),
+                 *(f"{100 * figures[m][0]:.2f} / {100 * figures[m][1]:.2f}, {figures[m][2]:.4f}"
+                   if m in figures else "-" for m in models)]
         print("| " + " | ".join(cells) + " |")
 
 
