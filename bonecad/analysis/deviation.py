@@ -348,6 +348,7 @@ def shape_deviation(
     edges_mm: np.ndarray,
     seed: int = 0,
     map_vertices: np.ndarray | None = None,
+    mesh_locator: TriangleLocator | None = None,
 ) -> DeviationResult:
     """Deviation between a triangle mesh (``vertices`` (n, 3) mm, ``faces`` (m, 3)) and a CAD shape,
     given by its tessellation with exact surfaces (``bonecad.occ.tessellate``; a closed shell or
@@ -362,6 +363,7 @@ def shape_deviation(
     seed : seed of the area-weighted sampling (same seed, same samples)
     map_vertices : (k, 3) mm, the points of ``vertex_deviation_mm`` (the vertices of the mesh the colour
         map draws, e.g. a simplified copy of the same surface); None: ``vertices``
+    mesh_locator : the closest-point tree of the mesh when the caller has it (None: built here)
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
@@ -380,8 +382,7 @@ def shape_deviation(
 
     t0 = time.perf_counter()
     cad_points, weights, on_surface = sample_shape(tess, count, seed=seed + 1)
-    locator = TriangleLocator(vertices, faces)
-    near = locator.query(cad_points)
+    near = (mesh_locator or TriangleLocator(vertices, faces)).query(cad_points)
     normal = np.einsum("nk,nkj->nj", near.barycentric, vertex_normals(vertices, faces)[faces[near.triangle]])
     back_dev = -_signed(cad_points, near.points, normal)
     backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), on_surface, edges_mm)

@@ -87,7 +87,7 @@ def model_deviation(tess: Tessellation, bone: BoneMesh, frame: AnatomicalFrame,
     the colour map's at the vertices of its working copy (``BoneMesh.work``)."""
     deviation = shape_deviation(bone.vertices, bone.faces, tess, regions=region_labels(frame),
                                 sample_points=settings.sample_points, edges_mm=settings_band_edges(settings),
-                                map_vertices=bone.work.vertices)
+                                map_vertices=bone.work.vertices, mesh_locator=bone.locator)
     stats = deviation.mesh_to_cad.stats
     log.info("RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", stats.rms_mm, stats.max_outside_mm,
              stats.max_inside_mm)

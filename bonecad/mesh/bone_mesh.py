@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
+from bonecad.mesh.closest import TriangleLocator
 from bonecad.mesh.sampling import triangle_areas
 
 
@@ -40,6 +42,14 @@ class BoneMesh:
     segmented: bool = False
     extra: dict = field(default_factory=dict)
     working: BoneMesh | None = None
+
+    @cached_property
+    def locator(self) -> TriangleLocator:
+        """The closest-point tree of this mesh (built at the first use, then kept; not pickled)."""
+        return TriangleLocator(self.vertices, self.faces)
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "locator"}
 
     @property
     def work(self) -> BoneMesh:

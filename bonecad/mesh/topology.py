@@ -140,7 +140,7 @@ def is_closed_and_oriented(faces: np.ndarray) -> bool:
 def vertex_components(faces: np.ndarray, vertex_count: int) -> tuple[int, np.ndarray]:
     """Bodies of a mesh (vertices joined by edges): (count, (n,) body of each vertex)."""
     a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
-    graph = sp.coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(vertex_count, vertex_count)).tocsr()
+    graph = sp.coo_matrix((np.ones(len(a), dtype=bool), (a, b)), shape=(vertex_count, vertex_count)).tocsr()
     count, labels = connected_components(graph, directed=False)
     return int(count), labels
 
