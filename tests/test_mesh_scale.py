@@ -54,7 +54,8 @@ def test_pinched_mesh_goes_to_meshlab(phantom, tmp_path):
     offset = phantom.vertices[top] - ball.vertices[int(np.argmin(ball.vertices[:, 2]))]
     vertices = np.vstack([phantom.vertices, ball.vertices + offset])
     path = tmp_path / "pinched.stl"
-    trimesh.Trimesh(vertices, np.vstack([phantom.faces, ball.faces + len(phantom.vertices)]), process=False).export(path)
+    faces = np.vstack([phantom.faces, ball.faces + len(phantom.vertices)])
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
     bone = bonecad.load_bone(path)
     assert any("non-manifold vertices" in r for r in bone.repairs)
     assert bone.watertight
