@@ -57,7 +57,8 @@ def merge_duplicate_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[n
 
 def duplicate_faces(faces: np.ndarray) -> np.ndarray:
     """(m,) bool: the faces on the same three vertices as an earlier face (in any order)."""
-    return first_of_equal_rows(np.sort(faces, axis=1)) != np.arange(len(faces))
+    narrow = np.int32 if faces.size == 0 or faces.max() < np.iinfo(np.int32).max else np.int64  # fewer words to hash
+    return first_of_equal_rows(np.sort(faces, axis=1).astype(narrow)) != np.arange(len(faces))
 
 
 @dataclass(frozen=True)
