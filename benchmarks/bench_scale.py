@@ -81,7 +81,7 @@ def reconstruct(mesh: Path, out: Path) -> tuple[float, float, float]:
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-m", "bonecad.run.cli", "reconstruct", str(mesh), "--out", str(out),
-                             "-q"], stdout=subprocess.DEVNULL)
+                             "-q"], stdout=subprocess.DEVNULL, cwd=out.parent)  # no bonecad/ in the current folder
     watched = psutil.Process(proc.pid)
     peak = 0
     while proc.poll() is None:

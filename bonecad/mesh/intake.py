@@ -87,8 +87,9 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
     """Cleanup; returns the cleaned arrays (vertices float64), their edges and a list of what was repaired.
 
     Duplicate vertices and faces, degenerate faces and unreferenced vertices
-    are removed here (vectorised); a mesh with border or non-manifold edges or
-    vertices goes on to MeshLab's repairs.
+    are removed here (vectorised, in MeshLab's order); a mesh that then has
+    border or non-manifold edges or vertices is cleaned and repaired by MeshLab
+    from the arrays as given, as before.
     """
     repairs: list[str] = []
 
@@ -97,37 +98,41 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
             repairs.append(f"{label}: vertices {before[0]}->{after[0]}, faces {before[1]}->{after[1]}")
 
     size = (len(vertices), len(faces))
-    vertices, faces = merge_duplicate_vertices(vertices, faces)
-    vertices = vertices.astype(np.float64)
-    note("merged duplicate vertices", size, size := (len(vertices), len(faces)))
-    faces = faces[~duplicate_faces(faces)]
-    note("removed duplicate faces", size, size := (len(vertices), len(faces)))
-    faces = faces[triangle_areas(vertices, faces) > 0]
-    note("removed degenerate (zero-area) faces", size, size := (len(vertices), len(faces)))
-    used = np.zeros(len(vertices), dtype=bool)
-    used[faces] = True
-    vertices, faces = vertices[used], (np.cumsum(used) - 1)[faces]
-    note("removed unreferenced vertices", size, (len(vertices), len(faces)))
-    edges = edge_counts(faces, len(vertices))
-    if edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(faces, edges):
-        vertices, faces = _meshlab_repairs(vertices, faces, max_hole_edges, note)
-        edges = edge_counts(faces, len(vertices))
-    return vertices, faces, edges, repairs
+    merged_vertices, merged = merge_duplicate_vertices(vertices, faces)
+    unique = merged[~duplicate_faces(merged)]
+    proper = unique[triangle_areas(merged_vertices.astype(np.float64), unique) > 0]
+    used = np.zeros(len(merged_vertices), dtype=bool)
+    used[proper] = True
+    kept_vertices, kept_faces = merged_vertices[used].astype(np.float64), (np.cumsum(used) - 1)[proper]
+    edges = edge_counts(kept_faces, len(kept_vertices))
+    if edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(kept_faces, edges):
+        vertices, faces = _meshlab_clean(vertices, faces, max_hole_edges, note)
+        return vertices, faces, edge_counts(faces, len(vertices)), repairs
+    note("merged duplicate vertices", size, size := (len(merged_vertices), len(merged)))
+    note("removed duplicate faces", size, size := (len(merged_vertices), len(unique)))
+    note("removed degenerate (zero-area) faces", size, size := (len(merged_vertices), len(proper)))
+    note("removed unreferenced vertices", size, (len(kept_vertices), len(kept_faces)))
+    return kept_vertices, kept_faces, edges, repairs
 
 
-def _meshlab_repairs(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, note
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """MeshLab's repairs of non-manifold edges and vertices and its hole filling (``note`` records each)."""
+def _meshlab_clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, note
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """MeshLab's cleanup and repairs of a mesh that needs them: duplicate vertices, duplicate and degenerate
+    faces, non-manifold edges and vertices, unreferenced vertices, small holes (``note`` records each)."""
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=faces.astype(np.int32)))
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(vertices, dtype=np.float64),
+                               face_matrix=faces.astype(np.int32)))
 
     def counted(filter_name: str, label: str, **kwargs) -> None:
         before = ms.current_mesh().vertex_number(), ms.current_mesh().face_number()
         getattr(ms, filter_name)(**kwargs)
         note(label, before, (ms.current_mesh().vertex_number(), ms.current_mesh().face_number()))
 
+    counted("meshing_remove_duplicate_vertices", "merged duplicate vertices")
+    counted("meshing_remove_duplicate_faces", "removed duplicate faces")
+    counted("meshing_remove_null_faces", "removed degenerate (zero-area) faces")
     counted("meshing_repair_non_manifold_edges", "repaired non-manifold edges")
     counted("meshing_repair_non_manifold_vertices", "repaired non-manifold vertices")
     counted("meshing_remove_unreferenced_vertices", "removed unreferenced vertices")
@@ -170,25 +175,27 @@ def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts) -> list[
         used = np.zeros(len(vertices), dtype=bool)
         used[body_faces] = True
         body_vertices, body_faces = vertices[used], (np.cumsum(used) - 1)[body_faces]
-        volume = float(volumes[b])
-        if incoherent[b]:
-            volume = _orient_coherently(body_vertices, body_faces)
+        volume, watertight = float(volumes[b]), not open_bodies[b]
+        if open_bodies[b] or incoherent[b]:
+            body_faces, volume, watertight = _mended(body_vertices, body_faces)
         if volume < 0:
             body_faces, volume = body_faces[:, ::-1], -volume
-        bodies.append(_Body(body_vertices, np.ascontiguousarray(body_faces), volume, centroids[b],
-                            not open_bodies[b]))
+        bodies.append(_Body(body_vertices, np.ascontiguousarray(body_faces), volume, centroids[b], watertight))
     bodies.sort(key=lambda body: -body.volume)
     return bodies
 
 
-def _orient_coherently(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Turn the faces of a body with disagreeing orientations to agree (trimesh, in place); its signed volume."""
+def _mended(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float, bool]:
+    """A body left open or with disagreeing orientations, mended by trimesh (holes of three or four edges
+    filled, faces turned to agree): its faces, signed volume (mm^3) and whether it is closed now."""
     import trimesh
 
     mesh = trimesh.Trimesh(vertices, faces, process=False)
+    trimesh.repair.fill_holes(mesh)
     trimesh.repair.fix_winding(mesh)
-    faces[:] = mesh.faces
-    return float(signed_volumes(vertices, faces, np.zeros(len(faces), dtype=np.int64), 1)[0])
+    mended = np.asarray(mesh.faces, dtype=np.int64)
+    volume = float(signed_volumes(vertices, mended, np.zeros(len(mended), dtype=np.int64), 1)[0])
+    return mended, volume, bool(mesh.is_watertight)
 
 
 def _principal_extent(points: np.ndarray) -> tuple[np.ndarray, float, float]:
