@@ -40,7 +40,8 @@ class UnitsSettings:
 @dataclass(frozen=True)
 class MeshSettings:
     """Mesh intake: hole filling (edges); the bodies by anatomy: volume shares (of the tibia's volume),
-    slenderness (length / width), distances (mm), a share of the tibia's length; fused-bone detection."""
+    slenderness (length / width), distances (mm), a share of the tibia's length; fused-bone detection;
+    the working copy of a dense mesh (mean edge mm, density factor, largest distance mm)."""
 
     fragment_volume_share: float
     broken_piece_volume_share: float
@@ -53,6 +54,9 @@ class MeshSettings:
     fused_loop_stretch_share: float
     fused_neck_zone_share: float
     fused_neck_ratio: float
+    working_edge_mm: float
+    working_density_factor: float
+    working_max_deviation_mm: float
 
 
 @dataclass(frozen=True)

@@ -130,9 +130,9 @@ class DeviationResult:
     unrefined_bound_mm : largest chord error of the tessellation's triangles
         within reach of the mesh -> CAD distances not refined on the exact
         surface (bounds the error of every such distance; 0.0 when all were refined)
-    vertex_deviation_mm : (n,) signed deviation at each mesh vertex (for colour
-        maps): its distance to the tessellation, within the tessellation's
-        chord error (``[analysis] tessellation_deflection_mm``) of the exact one
+    vertex_deviation_mm : (n,) signed deviation at each vertex of the mesh the colour
+        map draws (``shape_deviation(map_vertices=...)``): its distance to the tessellation,
+        within the tessellation's chord error (``[analysis] tessellation_deflection_mm``) of the exact one
     timings_s : seconds per step
     """
 
@@ -347,6 +347,8 @@ def shape_deviation(
     sample_points: int,
     edges_mm: np.ndarray,
     seed: int = 0,
+    map_vertices: np.ndarray | None = None,
+    mesh_locator: TriangleLocator | None = None,
 ) -> DeviationResult:
     """Deviation between a triangle mesh (``vertices`` (n, 3) mm, ``faces`` (m, 3)) and a CAD shape,
     given by its tessellation with exact surfaces (``bonecad.occ.tessellate``; a closed shell or
@@ -359,6 +361,9 @@ def shape_deviation(
     sample_points : samples per direction (``[analysis] sample_points``)
     edges_mm : histogram band edges (``statistics.band_edges``)
     seed : seed of the area-weighted sampling (same seed, same samples)
+    map_vertices : (k, 3) mm, the points of ``vertex_deviation_mm`` (the vertices of the mesh the colour
+        map draws, e.g. a simplified copy of the same surface); None: ``vertices``
+    mesh_locator : the closest-point tree of the mesh when the caller has it (None: built here)
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
@@ -377,15 +382,15 @@ def shape_deviation(
 
     t0 = time.perf_counter()
     cad_points, weights, on_surface = sample_shape(tess, count, seed=seed + 1)
-    locator = TriangleLocator(vertices, faces)
-    near = locator.query(cad_points)
+    near = (mesh_locator or TriangleLocator(vertices, faces)).query(cad_points)
     normal = np.einsum("nk,nkj->nj", near.barycentric, vertex_normals(vertices, faces)[faces[near.triangle]])
     back_dev = -_signed(cad_points, near.points, normal)
     backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), on_surface, edges_mm)
     timings["cad_to_mesh"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # the colour map's: a picture, interpolated across the mesh's triangles
-    vertex_deviation = _tessellation_distance(vertices, tess, shape_locator.query(vertices))
+    shown = vertices if map_vertices is None else np.asarray(map_vertices, dtype=np.float64)
+    vertex_deviation = _tessellation_distance(shown, tess, shape_locator.query(shown))
     timings["vertices"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # the chord error bounds only the distances left on the tessellation: measured about them

@@ -83,9 +83,11 @@ def tessellate_model(shape, settings: AnalysisSettings) -> Tessellation:
 
 def model_deviation(tess: Tessellation, bone: BoneMesh, frame: AnatomicalFrame,
                     settings: AnalysisSettings) -> DeviationResult:
-    """Signed deviation between the bone mesh and the model, both ways, overall and per region."""
+    """Signed deviation between the bone mesh (the full mesh) and the model, both ways, overall and per region;
+    the colour map's at the vertices of its working copy (``BoneMesh.work``)."""
     deviation = shape_deviation(bone.vertices, bone.faces, tess, regions=region_labels(frame),
-                                sample_points=settings.sample_points, edges_mm=settings_band_edges(settings))
+                                sample_points=settings.sample_points, edges_mm=settings_band_edges(settings),
+                                map_vertices=bone.work.vertices, mesh_locator=bone.locator)
     stats = deviation.mesh_to_cad.stats
     log.info("RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", stats.rms_mm, stats.max_outside_mm,
              stats.max_inside_mm)

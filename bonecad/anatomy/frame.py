@@ -218,6 +218,7 @@ def anatomical_frame(
     plausible : the whole tibia's length range (mm).
     """
     anat = settings
+    bone = bone.work  # the shape, in as many triangles as the tolerance needs (``BoneMesh.working``)
     vertices, faces = bone.vertices, bone.faces
     centre, axis = _area_weighted_axis(vertices, faces)
     heights = (vertices - centre) @ axis

@@ -108,9 +108,10 @@ class ContourSet:
 
 
 def bone_coordinates(bone: BoneMesh, frame: AnatomicalFrame) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh in bone coordinates; faces flipped for a left tibia so normals still point out."""
-    vertices = frame.to_bone(bone.vertices)
-    faces = bone.faces[:, ::-1] if frame.mirrored else bone.faces
+    """The mesh's working copy (``BoneMesh.work``: the shape, in as many triangles as the tolerance needs) in
+    bone coordinates; faces flipped for a left tibia so normals still point out."""
+    vertices = frame.to_bone(bone.work.vertices)
+    faces = bone.work.faces[:, ::-1] if frame.mirrored else bone.work.faces
     return vertices, faces
 
 

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
+from bonecad.mesh.closest import TriangleLocator
 from bonecad.mesh.sampling import triangle_areas
 
 
@@ -26,6 +28,8 @@ class BoneMesh:
     faces : (m, 3) int64, counter-clockwise seen from outside (normals point out)
     segmented : True when bonecad segmented it from a CT volume: the polygonal
         model the CAD models are fitted to, written as bone.stl beside them
+    working : a simplified copy of the same surface for the stages that need the shape, not every
+        triangle (``mesh.working.with_working_copy``); None when the mesh is no denser than that
     """
 
     vertices: np.ndarray
@@ -37,6 +41,20 @@ class BoneMesh:
     watertight: bool = True
     segmented: bool = False
     extra: dict = field(default_factory=dict)
+    working: BoneMesh | None = None
+
+    @cached_property
+    def locator(self) -> TriangleLocator:
+        """The closest-point tree of this mesh (built at the first use, then kept; not pickled)."""
+        return TriangleLocator(self.vertices, self.faces)
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "locator"}
+
+    @property
+    def work(self) -> BoneMesh:
+        """The mesh the frame, the curves, the fit and the pictures work on: the working copy, or this mesh."""
+        return self.working if self.working is not None else self
 
     @property
     def triangle_count(self) -> int:
@@ -70,4 +88,6 @@ class BoneMesh:
                 for b in self.bodies
             ],
             "repairs": list(self.repairs),
+            **({"working_copy": {"triangles": self.working.triangle_count, **self.working.extra}}
+               if self.working is not None else {}),
         }

@@ -117,6 +117,12 @@ class TriangleLocator:
         self._tree = igl.AABB()
         self._tree.init(self.vertices, self.triangles)
 
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """(N,) mm: the distance of each of ``points`` (N, 3) from the mesh (the tree's own, no closest points)."""
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        squared, _, _ = self._tree.squared_distance(self.vertices, self.triangles, points)
+        return np.sqrt(np.asarray(squared, dtype=np.float64).ravel())
+
     def query(self, points: np.ndarray) -> ClosestPoints:
         """Closest points of ``points`` (N, 3) on the mesh: the exact nearest point of every one."""
         points = np.ascontiguousarray(points, dtype=np.float64)

@@ -1,13 +1,18 @@
 """Read a bone mesh, clean it, find the tibia among its bodies, check units.
 
-Reading is trimesh's (STL ascii/binary, OBJ, PLY, OFF); cleanup is MeshLab's
-(pymeshlab): merge duplicate vertices, drop duplicate and degenerate faces,
-repair non-manifold edges and vertices, close small holes, orient faces
-coherently and outward. Every repair is counted and reported.
+Reading is trimesh's (STL ascii/binary, OBJ, PLY, OFF: its format readers,
+straight to arrays). Cleanup merges duplicate vertices, drops duplicate and
+degenerate faces (vectorised, ``mesh.topology``); only a mesh with border or
+non-manifold edges goes through MeshLab's repairs (pymeshlab: non-manifold
+edges and vertices, small holes closed). Faces are oriented coherently and
+outward per body. Every repair is counted and reported. A mesh much denser
+than the tolerance needs gets a working copy (``mesh.working``), on which the
+anatomy is read.
 """
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -16,6 +21,10 @@ import numpy as np
 from bonecad.errors import InputError
 from bonecad.mesh.bodies import body_roles, body_shape, check_not_fused, choose_tibia, proximal_direction
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
+from bonecad.mesh.sampling import triangle_areas
+from bonecad.mesh.topology import (EdgeCounts, duplicate_faces, edge_counts, merge_duplicate_vertices,
+                                   non_manifold_vertices, signed_volumes, vertex_components)
+from bonecad.mesh.working import with_working_copy
 from bonecad.settings import MeshSettings, UnitsSettings
 
 log = logging.getLogger(__name__)
@@ -27,8 +36,6 @@ MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off")
 
 def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) and faces (m, 3) of a mesh file, exactly as stored; InputError if unusable."""
-    import trimesh
-
     path = Path(path)
     if not path.exists():
         raise InputError("file does not exist", path)
@@ -41,12 +48,10 @@ def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if path.stat().st_size == 0:
         raise InputError("file is empty", path)
     try:
-        loaded = trimesh.load(path, force="mesh", process=False)
+        vertices, faces = _read_arrays(path)
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise InputError(f"cannot be read as a {path.suffix[1:].upper()} mesh ({type(exc).__name__}: {exc})",
                          path) from None
-    vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
-    faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
     if len(faces) == 0 or len(vertices) < 4:
         raise InputError("holds no triangles (empty, truncated or not a mesh)", path)
     if faces.ndim != 2 or faces.shape[1] != 3:
@@ -59,20 +64,71 @@ def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
-def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """MeshLab cleanup; returns the cleaned arrays and a list of what was repaired."""
+def _read_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) (float32 or float64, as stored) and faces (m, 3) int64 of a mesh file, by trimesh's
+    reader for its format (no Trimesh object: its copies and caches cost more than the reading on a dense mesh)."""
+    from trimesh.exchange.load import mesh_loaders
+
+    file_type = path.suffix.lower()[1:]
+    with open(path, "rb") as file:
+        loaded = mesh_loaders[file_type](file, file_type=file_type)
+    parts = list(loaded["geometry"].values()) if "geometry" in loaded else [loaded]  # OBJ: one part per object
+    parts = [p for p in parts if len(np.asarray(p.get("faces", ()))) and len(np.asarray(p.get("vertices", ())))]
+    if not parts:
+        return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64)
+    offsets = np.cumsum([0] + [len(p["vertices"]) for p in parts[:-1]])
+    vertices = np.concatenate([np.asarray(p["vertices"]).reshape(-1, 3) for p in parts])
+    faces = np.concatenate([np.asarray(p["faces"], dtype=np.int64) + o for p, o in zip(parts, offsets)])
+    return vertices, faces
+
+
+def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
+           ) -> tuple[np.ndarray, np.ndarray, EdgeCounts, list[str]]:
+    """Cleanup; returns the cleaned arrays (vertices float64), their edges and a list of what was repaired.
+
+    Duplicate vertices and faces, degenerate faces and unreferenced vertices
+    are removed here (vectorised, in MeshLab's order); a mesh that then has
+    border or non-manifold edges or vertices is cleaned and repaired by MeshLab
+    from the arrays as given, as before.
+    """
+    repairs: list[str] = []
+
+    def note(label: str, before: tuple[int, int], after: tuple[int, int]) -> None:
+        if before != after:
+            repairs.append(f"{label}: vertices {before[0]}->{after[0]}, faces {before[1]}->{after[1]}")
+
+    size = (len(vertices), len(faces))
+    merged_vertices, merged = merge_duplicate_vertices(vertices, faces)
+    unique = merged[~duplicate_faces(merged)]
+    proper = unique[triangle_areas(merged_vertices.astype(np.float64), unique) > 0]
+    used = np.zeros(len(merged_vertices), dtype=bool)
+    used[proper] = True
+    kept_vertices, kept_faces = merged_vertices[used].astype(np.float64), (np.cumsum(used) - 1)[proper]
+    edges = edge_counts(kept_faces, len(kept_vertices))
+    if edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(kept_faces, edges):
+        vertices, faces = _meshlab_clean(vertices, faces, max_hole_edges, note)
+        return vertices, faces, edge_counts(faces, len(vertices)), repairs
+    note("merged duplicate vertices", size, size := (len(merged_vertices), len(merged)))
+    note("removed duplicate faces", size, size := (len(merged_vertices), len(unique)))
+    note("removed degenerate (zero-area) faces", size, size := (len(merged_vertices), len(proper)))
+    note("removed unreferenced vertices", size, (len(kept_vertices), len(kept_faces)))
+    return kept_vertices, kept_faces, edges, repairs
+
+
+def _meshlab_clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, note
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """MeshLab's cleanup and repairs of a mesh that needs them: duplicate vertices, duplicate and degenerate
+    faces, non-manifold edges and vertices, unreferenced vertices, small holes (``note`` records each)."""
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=faces.astype(np.int32)))
-    repairs: list[str] = []
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(vertices, dtype=np.float64),
+                               face_matrix=faces.astype(np.int32)))
 
     def counted(filter_name: str, label: str, **kwargs) -> None:
-        before_v, before_f = ms.current_mesh().vertex_number(), ms.current_mesh().face_number()
+        before = ms.current_mesh().vertex_number(), ms.current_mesh().face_number()
         getattr(ms, filter_name)(**kwargs)
-        after_v, after_f = ms.current_mesh().vertex_number(), ms.current_mesh().face_number()
-        if (before_v, before_f) != (after_v, after_f):
-            repairs.append(f"{label}: vertices {before_v}->{after_v}, faces {before_f}->{after_f}")
+        note(label, before, (ms.current_mesh().vertex_number(), ms.current_mesh().face_number()))
 
     counted("meshing_remove_duplicate_vertices", "merged duplicate vertices")
     counted("meshing_remove_duplicate_faces", "removed duplicate faces")
@@ -82,21 +138,64 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int) -> tupl
     counted("meshing_remove_unreferenced_vertices", "removed unreferenced vertices")
     counted("meshing_close_holes", f"closed holes up to {max_hole_edges} edges", maxholesize=max_hole_edges)
     mesh = ms.current_mesh()
-    return mesh.vertex_matrix().astype(np.float64), mesh.face_matrix().astype(np.int64), repairs
+    return mesh.vertex_matrix().astype(np.float64), mesh.face_matrix().astype(np.int64)
 
 
-def _bodies(vertices: np.ndarray, faces: np.ndarray):
-    """Split into connected bodies, each oriented outward; largest volume first."""
+@dataclass(frozen=True)
+class _Body:
+    """One connected body of the cleaned mesh: its own vertices (mm, input units) and faces, oriented outward."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    volume: float
+    centroid: np.ndarray  # area-weighted mean of the triangle centres
+    watertight: bool  # every edge shared by two faces
+
+
+def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts) -> list[_Body]:
+    """Split into connected bodies, each oriented coherently and outward; largest volume first."""
+    count, vertex_body = vertex_components(faces, len(vertices))
+    edge_body = vertex_body[edges.low_vertex()]
+    open_bodies = np.bincount(edge_body[edges.faces_per_edge != 2], minlength=count) > 0
+    incoherent = np.bincount(edge_body[~edges.consistent], minlength=count) > 0
+    face_body = vertex_body[faces[:, 0]]
+    face_order = np.argsort(face_body, kind="stable")  # each body's faces in input order
+    face_bounds = np.r_[0, np.cumsum(np.bincount(face_body, minlength=count))]
+    tri = vertices[faces]
+    area = triangle_areas(vertices, faces)
+    weighted_centre = np.stack([np.bincount(face_body, area * tri[:, :, k].mean(axis=1), minlength=count)
+                                for k in range(3)], axis=1)
+    centroids = weighted_centre / np.maximum(np.bincount(face_body, area, minlength=count), 1e-300)[:, None]
+    volumes = signed_volumes(vertices, faces, face_body, count)
+    bodies = []
+    for b in range(count):
+        body_faces = faces[face_order[face_bounds[b] : face_bounds[b + 1]]]
+        if len(body_faces) == 0:
+            continue
+        used = np.zeros(len(vertices), dtype=bool)
+        used[body_faces] = True
+        body_vertices, body_faces = vertices[used], (np.cumsum(used) - 1)[body_faces]
+        volume, watertight = float(volumes[b]), not open_bodies[b]
+        if open_bodies[b] or incoherent[b]:
+            body_faces, volume, watertight = _mended(body_vertices, body_faces)
+        if volume < 0:
+            body_faces, volume = body_faces[:, ::-1], -volume
+        bodies.append(_Body(body_vertices, np.ascontiguousarray(body_faces), volume, centroids[b], watertight))
+    bodies.sort(key=lambda body: -body.volume)
+    return bodies
+
+
+def _mended(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float, bool]:
+    """A body left open or with disagreeing orientations, mended by trimesh (holes of three or four edges
+    filled, faces turned to agree): its faces, signed volume (mm^3) and whether it is closed now."""
     import trimesh
 
-    whole = trimesh.Trimesh(vertices, faces, process=False)
-    parts = whole.split(only_watertight=False)
-    oriented = []
-    for part in parts:
-        trimesh.repair.fix_normals(part, multibody=False)
-        oriented.append(part)
-    oriented.sort(key=lambda p: -abs(p.volume))
-    return oriented
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    trimesh.repair.fill_holes(mesh)
+    trimesh.repair.fix_winding(mesh)
+    mended = np.asarray(mesh.faces, dtype=np.int64)
+    volume = float(signed_volumes(vertices, mended, np.zeros(len(mended), dtype=np.int64), 1)[0])
+    return mended, volume, bool(mesh.is_watertight)
 
 
 def _principal_extent(points: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -161,22 +260,22 @@ def prepare_bone(
 
     plausible : the tibia length range that tells the units."""
     path = Path(source) if source else None
-    vertices, faces, repairs = _clean(vertices, faces, settings.max_hole_edges)
-    bodies = _bodies(vertices, faces)
-    if not bodies or abs(bodies[0].volume) <= 0:
+    vertices, faces, edges, repairs = _clean(vertices, faces, settings.max_hole_edges)
+    bodies = _bodies(vertices, faces, edges)
+    if not bodies or bodies[0].volume <= 0:
         raise InputError("has no closed body with a volume", path)
 
     # units from the largest body (a tibia or a femur: both 15-150 mm wide)
     _, length, width = _principal_extent(bodies[0].vertices)
     scale = _detect_scale(length, width, units, path, plausible.tibia_length_mm)
-    shapes = [body_shape(np.asarray(b.vertices) * scale, abs(b.volume) * scale**3, np.asarray(b.centroid) * scale)
-              for b in bodies]
+    shapes = [body_shape(b.vertices * scale, b.volume * scale**3, b.centroid * scale) for b in bodies]
     length_range = (float(plausible.tibia_length_mm[0]), float(plausible.tibia_length_mm[1]))
     t = choose_tibia(shapes, settings, length_range)
     tibia = bodies[t]
-    tibia_vertices = np.asarray(tibia.vertices, dtype=np.float64) * scale
-    tibia_faces = np.asarray(tibia.faces, dtype=np.int64)
-    up = proximal_direction(tibia_vertices, tibia_faces, shapes[t].centroid, shapes[t].axis)
+    bone = with_working_copy(BoneMesh(vertices=tibia.vertices * scale, faces=tibia.faces, source=str(source),
+                                      units="mm", watertight=tibia.watertight), settings)
+    work = bone.work  # the anatomy is read on the working copy
+    up = proximal_direction(work.vertices, work.faces, shapes[t].centroid, shapes[t].axis)
     roles = body_roles(shapes, t, up, settings)
     infos = [
         BodyInfo(
@@ -198,7 +297,7 @@ def prepare_bone(
             "bonecad does not guess how to join them: segment the bone as one body",
             path,
         )
-    check_not_fused(tibia_vertices, tibia_faces, settings, length_range, path)
+    check_not_fused(work.vertices, work.faces, settings, length_range, path)
     dropped = infos[1:]
     if dropped:
         repairs.append("dropped " + ", ".join(
@@ -206,13 +305,4 @@ def prepare_bone(
             for i in dropped))
     if scale != 1.0:
         repairs.append(f"scaled by {scale:g} to mm (--units {units})")
-
-    return BoneMesh(
-        vertices=tibia_vertices,
-        faces=tibia_faces,
-        source=str(source),
-        units="mm",
-        bodies=tuple(infos),
-        repairs=tuple(repairs),
-        watertight=bool(tibia.is_watertight),
-    )
+    return replace(bone, bodies=tuple(infos), repairs=tuple(repairs))

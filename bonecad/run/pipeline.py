@@ -38,6 +38,7 @@ from bonecad.export.report import ReportDocument, Tolerances
 from bonecad.export.viewer import ViewMesh, input_view, model_view, viewer_html
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
+from bonecad.mesh.working import with_working_copy
 from bonecad.run.executor import Executor, InProcess, executor_for
 from bonecad.settings import Settings
 from bonecad.splines.tspline.fit import FitStats
@@ -133,16 +134,17 @@ def segment_ct(path: str | Path, settings: Settings) -> BoneMesh:
     log.info("reading CT volume %s", path)
     volume = read_volume(path)
     log.info("segmenting bone (%d x %d x %d voxels)", *volume.hu.shape[::-1])
-    bone = segment_bone(volume, settings=settings.mesh)
+    bone = with_working_copy(segment_bone(volume, settings=settings.mesh), settings.mesh)
     for repair in bone.repairs:
         log.info("%s", repair)
     lo, hi = settings.units.tibia_length_mm
-    check_not_fused(bone.vertices, bone.faces, settings.mesh, (float(lo), float(hi)), Path(path))
+    check_not_fused(bone.work.vertices, bone.work.faces, settings.mesh, (float(lo), float(hi)), Path(path))
     return bone
 
 
 def load_input(path: str | Path, settings: Settings, *, units: Units = "auto") -> BoneMesh:
-    """The tibia mesh of an input: read a mesh file, or segment a CT volume."""
+    """The tibia mesh of an input: read a mesh file, or segment a CT volume (either with the working copy of a
+    surface denser than the tolerance needs, ``mesh.working``)."""
     if is_volume(path):
         return segment_ct(path, settings)
     return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
@@ -213,6 +215,9 @@ def reconstruct_bone(
             with timings.stage("OpenCascade and matplotlib imports"), ex.shielded():
                 for module in ("bonecad.occ.brep", "bonecad.render.figures", "bonecad.export.cad"):
                     importlib.import_module(module)
+            if until == "models":
+                with timings.stage("closest-point tree of the mesh"):
+                    _ = bone.locator  # built in idle time, for both models' analysis (their jobs fork later)
             with timings.stage("waiting for the frame and the contour curves"):
                 frame, contours, front_timings = front.result()
             timings.update(front_timings)
@@ -331,7 +336,8 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     view = ex.submit(model_view, name, tess.vertices, tess.triangles, bone.vertices, bone.faces,
                      settings.analysis.view_max_triangles)
     deviation = model_deviation(tess, bone, frame, settings.analysis)
-    colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", bone.vertices, bone.faces,
+    shown = bone.work  # the colour map draws the working copy (its vertices' deviations)
+    colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", shown.vertices, shown.faces,
                            deviation.vertex_deviation_mm, view_frame,
                            title=f"{name}: deviation of the mesh from the CAD model, mm")
     histogram = histogram_png(

@@ -1,0 +1,160 @@
+"""Scale benchmark: `bonecad reconstruct` wall time and peak memory against the input's triangle count.
+
+Targets (issue 24): 2 M triangles <= 15 s and <= 2.5 GB, 8 M <= 45 s and <= 6 GB on
+two cores; the 100 k case not slower than before; the deviation of the models
+against the full mesh within 0.2 percentage points of the 100 k case's.
+
+The inputs are one real tibia (TLEM2 by default, ~120 k triangles) split at its
+edge midpoints 1, 2 and 3 times (x4 triangles each: the same surface, shorter
+edges), written as binary STL into a temporary folder (never the repository).
+Each size runs ``bonecad reconstruct MESH --out DIR -q`` once in a new process;
+its memory is the peak of the whole process tree's proportional set size (PSS:
+forked children share their parent's pages and count them once), polled every
+0.1 s. Per stage: the stage times of report.json (a background job's own time:
+jobs overlap, so they do not add up to the wall time), and the share of the mesh
+within 0.25 mm of each model and the RMS (mesh -> CAD, against the full input).
+
+Run: python benchmarks/bench_scale.py [--levels 0,1,2] [--mesh PATH] [--keep DIR]
+  --levels : subdivision levels to run (0: the mesh as read; 3: ~8 M triangles:
+             run it alone on the machine, it needs several GB)
+  --keep   : write (or reuse) the subdivided meshes in DIR instead of a temporary folder
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
+
+#: the report's stage timings grouped into the issue's stages (a stage absent from a run counts 0)
+STAGE_GROUPS = {
+    "intake": ["input"],
+    "frame": ["anatomical frame"],
+    "curves": ["contour curves"],
+    "nurbs": ["NURBS model"],
+    "nurbs analysis": ["NURBS analysis"],
+    "tspline": ["T-spline model"],
+    "tspline analysis": ["T-spline analysis"],
+}
+
+
+def subdivided_mesh(source: Path, level: int, folder: Path) -> Path:
+    """``source`` split ``level`` times at its edge midpoints, as a binary STL in ``folder`` (reused if there)."""
+    import trimesh
+
+    from bonecad.mesh.sampling import midpoint_subdivision
+
+    path = folder / f"{source.stem}_x{4 ** level}.stl"
+    if path.exists():
+        return path
+    mesh = trimesh.load(source, force="mesh")  # merged vertices: the midpoints are shared by both triangles
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    for _ in range(level):
+        vertices, faces = midpoint_subdivision(vertices, faces)
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+    return path
+
+
+def _tree_pss_bytes(proc: psutil.Process) -> int:
+    """Proportional set size of a process and its descendants (bytes); 0 for ones gone meanwhile."""
+    total = 0
+    for p in [proc, *proc.children(recursive=True)]:
+        try:
+            total += p.memory_full_info().pss
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            pass
+    return total
+
+
+def reconstruct(mesh: Path, out: Path) -> tuple[float, float, float]:
+    """Run ``bonecad reconstruct`` on ``mesh`` into ``out``; (wall s, CPU s of the process tree, peak PSS of
+    the process tree GB)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "bonecad.run.cli", "reconstruct", str(mesh), "--out", str(out),
+                             "-q"], stdout=subprocess.DEVNULL, cwd=out.parent)  # no bonecad/ in the current folder
+    watched = psutil.Process(proc.pid)
+    peak = 0
+    while proc.poll() is None:
+        try:
+            peak = max(peak, _tree_pss_bytes(watched))
+        except psutil.NoSuchProcess:
+            break
+        time.sleep(0.1)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        sys.exit(f"bonecad reconstruct {mesh} failed (exit {proc.returncode})")
+    cpu = after.ru_utime + after.ru_stime - usage.ru_utime - usage.ru_stime
+    return wall, cpu, peak / 1e9
+
+
+def stage_seconds(report: dict) -> dict[str, float]:
+    timings = report["timings_s"]
+    return {group: sum(timings.get(name, 0.0) for name in names) for group, names in STAGE_GROUPS.items()}
+
+
+def share_within(histogram: dict, limit_mm: float) -> float:
+    """Share of the surface in the histogram's bands within +-``limit_mm`` (a band edge)."""
+    edges = np.asarray(histogram["edges_mm"])
+    shares = np.asarray(histogram["shares"])[1:-1]  # the bands, without under- and overflow
+    return float(shares[(edges[:-1] >= -limit_mm - 1e-9) & (edges[1:] <= limit_mm + 1e-9)].sum())
+
+
+def deviation_figures(report: dict) -> dict[str, tuple[float, float, float]]:
+    """Per model, mesh -> CAD: shares of the surface within 0.2 and 0.3 mm of the model (the histogram's
+    band edges nearest the 0.25 mm tolerance) and the RMS (mm)."""
+    out = {}
+    for name, model in report["models"].items():
+        m2c = model["deviation"]["mesh_to_cad"]
+        out[name] = (share_within(m2c["histogram"], 0.2), share_within(m2c["histogram"], 0.3), m2c["stats"]["rms_mm"])
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--levels", default="0,1,2", help="subdivision levels (0-3), comma-separated")
+    parser.add_argument("--mesh", type=Path, default=DATA / "TLEM2_CT_tibia_r.stl")
+    parser.add_argument("--keep", type=Path, help="folder for the subdivided meshes (default: temporary)")
+    args = parser.parse_args()
+    if not args.mesh.exists():
+        sys.exit(f"benchmark needs {args.mesh}")
+    levels = [int(x) for x in args.levels.split(",")]
+    with tempfile.TemporaryDirectory(prefix="bench-scale-") as tmp:
+        folder = args.keep or Path(tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        rows = []
+        for level in levels:
+            mesh = subdivided_mesh(args.mesh, level, folder)
+            out = Path(tmp) / f"out{level}"
+            wall, cpu, peak_gb = reconstruct(mesh, out)
+            report = json.loads((out / "report.json").read_text())
+            read = sum(body["triangles"] for body in report["input"]["bodies"])
+            rows.append((read, report["input"]["triangles"], wall, cpu, peak_gb, stage_seconds(report),
+                         deviation_figures(report)))
+            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall:.1f} s wall, {cpu:.1f} s CPU, "
+                  f"{peak_gb:.2f} GB", file=sys.stderr, flush=True)
+    groups = list(STAGE_GROUPS)
+    models = sorted({m for row in rows for m in row[-1]})
+    print("| triangles (file, cleaned) | tibia | wall s | CPU s | peak GB | " + " | ".join(groups) + " | "
+          + " | ".join(f"{m} % within 0.2 / 0.3 mm, RMS mm" for m in models) + " |")
+    print("|" + "---|" * (5 + len(groups) + len(models)))
+    for read, triangles, wall, cpu, peak, stages, figures in rows:
+        cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f}", f"{cpu:.1f}", f"{peak:.2f}",
+                 *(f"{stages[g]:.1f}" for g in groups),
+                 *(f"{100 * figures[m][0]:.2f} / {100 * figures[m][1]:.2f}, {figures[m][2]:.4f}"
+                   if m in figures else "-" for m in models)]
+        print("| " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()

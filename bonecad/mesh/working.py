@@ -1,0 +1,80 @@
+"""The working copy of a dense bone mesh: the same surface in as many triangles as the tolerance needs.
+
+A mesh whose triangles are far smaller than the tolerance asks for (0.3 mm CT,
+subdivided exports) carries no more shape, but every stage that reads it pays
+for each triangle. Such a mesh gets a copy simplified by quadric edge collapse
+(Garland & Heckbert 1997, in the Fast-Quadric-Mesh-Simplification library
+through ``fast_simplification``) to triangles of about ``working_edge_mm``;
+the largest distance of the full mesh's vertices from the copy is measured
+on every run and held below ``working_max_deviation_mm`` (the copy gets more
+triangles otherwise). The deviation of the models is measured against the full mesh.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import numpy as np
+
+from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.mesh.closest import TriangleLocator
+from bonecad.mesh.sampling import triangle_areas
+from bonecad.mesh.topology import first_of_equal_rows, is_closed_and_oriented
+from bonecad.settings import MeshSettings
+
+log = logging.getLogger(__name__)
+
+#: area (mm^2) of an equilateral triangle of edge 1 mm
+_UNIT_TRIANGLE_MM2 = np.sqrt(3.0) / 4.0
+
+
+def working_triangles(vertices: np.ndarray, faces: np.ndarray, settings: MeshSettings) -> int | None:
+    """Triangles of the working copy of a mesh (equilateral ones of ``working_edge_mm`` over its area), or
+    None when the mesh has at most ``working_density_factor`` times as many (it is its own working copy)."""
+    area = float(triangle_areas(vertices, faces).sum())
+    target = int(np.ceil(area / (_UNIT_TRIANGLE_MM2 * settings.working_edge_mm**2)))
+    return target if len(faces) > settings.working_density_factor * target else None
+
+
+def simplified(vertices: np.ndarray, faces: np.ndarray, triangles: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh simplified by quadric edge collapse to about ``triangles`` triangles (vertices mm, faces).
+
+    An edge collapse can leave two faces on the same three vertices (a fin of
+    no volume, one in a million): both are dropped, with the vertices no face uses.
+    """
+    import fast_simplification
+
+    points, kept = fast_simplification.simplify(np.ascontiguousarray(vertices, dtype=np.float64),
+                                                np.ascontiguousarray(faces, dtype=np.int64), target_count=triangles)
+    first = first_of_equal_rows(np.sort(kept, axis=1))
+    kept = kept[np.bincount(first, minlength=len(kept))[first] == 1]
+    used = np.zeros(len(points), dtype=bool)
+    used[kept] = True
+    return np.asarray(points[used], dtype=np.float64), (np.cumsum(used) - 1)[kept].astype(np.int64)
+
+
+def with_working_copy(bone: BoneMesh, settings: MeshSettings) -> BoneMesh:
+    """``bone`` with its working copy (``BoneMesh.working``) when it is denser than the settings need.
+
+    The copy's ``extra`` holds its largest vertex distance from the full mesh
+    (``max_deviation_mm``, measured over every vertex of the full mesh).
+    """
+    target = working_triangles(bone.vertices, bone.faces, settings)
+    while target is not None:
+        vertices, faces = simplified(bone.vertices, bone.faces, target)
+        closed = is_closed_and_oriented(faces)
+        worst = float(TriangleLocator(vertices, faces).distance(bone.vertices).max()) if closed else np.inf
+        if worst <= settings.working_max_deviation_mm:
+            break
+        log.info("a working copy of %d triangles %s: doubling it", len(faces),
+                 f"lies {worst:.3f} mm from the mesh" if closed else "is not closed")
+        target *= 2
+        if bone.triangle_count <= settings.working_density_factor * target:
+            target = None
+    if target is None:
+        return bone
+    log.info("working copy: %d of %d triangles, vertices of the mesh within %.3f mm of it", len(faces),
+             bone.triangle_count, worst)
+    working = BoneMesh(vertices=vertices, faces=faces, source=bone.source, units=bone.units,
+                       watertight=bone.watertight, extra={"max_deviation_mm": round(worst, 4)})
+    return replace(bone, working=working)

@@ -1,0 +1,105 @@
+"""Cost that follows the bone, not the mesh (issue 24): vectorised topology, the working copy of a dense
+mesh, and the deviation still measured against the full mesh."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+import bonecad
+from bonecad.mesh.closest import TriangleLocator
+from bonecad.mesh.intake import prepare_bone
+from bonecad.mesh.sampling import midpoint_subdivision
+from bonecad.mesh.topology import (duplicate_faces, edge_counts, is_closed_and_oriented, merge_duplicate_vertices,
+                                   non_manifold_vertices)
+from bonecad.mesh.working import working_triangles
+
+from .conftest import REAL_MESHES, TIBIA_DIR
+from .defaults import SETTINGS
+
+
+def test_merge_matches_meshlab(phantom):
+    """Exact duplicates merged into the first (order kept), as MeshLab does: an STL's unshared corners."""
+    import pymeshlab
+
+    corners = phantom.vertices[phantom.faces].reshape(-1, 3).astype(np.float32)
+    faces = np.arange(len(corners)).reshape(-1, 3)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=corners.astype(np.float64), face_matrix=faces.astype(np.int32)))
+    ms.meshing_remove_duplicate_vertices()
+    vertices, merged = merge_duplicate_vertices(corners, faces)
+    assert np.array_equal(vertices.astype(np.float64), ms.current_mesh().vertex_matrix())
+    assert np.array_equal(merged, ms.current_mesh().face_matrix())
+
+
+def test_edges_fans_and_duplicates():
+    sphere = trimesh.creation.icosphere(2)
+    faces = np.asarray(sphere.faces)
+    edges = edge_counts(faces, len(sphere.vertices))
+    assert is_closed_and_oriented(faces) and non_manifold_vertices(faces, edges) == 0
+    assert not is_closed_and_oriented(np.vstack([faces[1:], faces[:1, ::-1]]))  # one face turned over
+    assert edge_counts(faces[1:], len(sphere.vertices)).border_edges == 3
+    # two spheres touching at one vertex: a vertex of two fans
+    other = faces + len(sphere.vertices)
+    other[other == len(sphere.vertices)] = 0
+    pinched = np.vstack([faces, other])
+    assert non_manifold_vertices(pinched, edge_counts(pinched, 2 * len(sphere.vertices))) == 1
+    assert duplicate_faces(np.vstack([faces, faces[5, [1, 2, 0]]])).tolist() == [False] * len(faces) + [True]
+
+
+def test_pinched_mesh_goes_to_meshlab(phantom, tmp_path):
+    """A non-manifold vertex (a second body touching the tibia at one vertex) is repaired, and said."""
+    ball = trimesh.creation.icosphere(2, radius=5.0)
+    top = int(np.argmax(phantom.vertices[:, 2]))
+    offset = phantom.vertices[top] - ball.vertices[int(np.argmin(ball.vertices[:, 2]))]
+    vertices = np.vstack([phantom.vertices, ball.vertices + offset])
+    path = tmp_path / "pinched.stl"
+    faces = np.vstack([phantom.faces, ball.faces + len(phantom.vertices)])
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+    bone = bonecad.load_bone(path)
+    assert any("non-manifold vertices" in r for r in bone.repairs)
+    assert bone.watertight
+
+
+@pytest.fixture(scope="module")
+def dense(phantom):
+    """The phantom split twice at its edge midpoints (16 times the triangles, the same surface)."""
+    vertices, faces = phantom.vertices, phantom.faces
+    while working_triangles(vertices, faces, SETTINGS.mesh) is None:
+        vertices, faces = midpoint_subdivision(vertices, faces)
+    return prepare_bone(vertices, faces, source="dense phantom", settings=SETTINGS.mesh, plausible=SETTINGS.units)
+
+
+def test_dense_mesh_gets_a_close_working_copy(dense, phantom):
+    work = dense.working
+    assert work is not None and dense.work is work
+    assert work.triangle_count <= working_triangles(dense.vertices, dense.faces, SETTINGS.mesh) * 1.01
+    assert is_closed_and_oriented(work.faces)
+    measured = TriangleLocator(work.vertices, work.faces).distance(dense.vertices).max()
+    assert measured <= SETTINGS.mesh.working_max_deviation_mm
+    assert dense.summary()["working_copy"]["max_deviation_mm"] == pytest.approx(measured, abs=1e-4)
+    # the anatomy read on the copy is the anatomy of the full mesh
+    assert np.allclose(bonecad.anatomical_frame(dense).origin, bonecad.anatomical_frame(phantom).origin, atol=0.3)
+
+
+def test_deviation_is_measured_against_the_full_mesh(dense, phantom, phantom_frame):
+    from dataclasses import replace
+
+    from bonecad.analysis.model import model_deviation, tessellate_model
+    from bonecad.contours.curves import contour_curves
+    from bonecad.nurbs_model.model import build_nurbs
+
+    model = build_nurbs(contour_curves(phantom, phantom_frame, settings=SETTINGS.curves), settings=SETTINGS.nurbs)
+    analysis = replace(SETTINGS.analysis, sample_points=5000)
+    deviation = model_deviation(tessellate_model(model.shape, analysis), dense, phantom_frame, analysis)
+    assert len(deviation.vertex_deviation_mm) == len(dense.working.vertices)  # the colour map draws the copy
+    area = float(dense.face_areas().sum())
+    assert deviation.mesh_to_cad.weights.sum() == pytest.approx(area, rel=1e-9)  # samples of the full mesh
+    assert TriangleLocator(dense.vertices, dense.faces).distance(deviation.mesh_to_cad.points).max() < 1e-9
+
+
+@pytest.mark.skipif(not REAL_MESHES, reason=f"real meshes folder {TIBIA_DIR} is absent")
+def test_real_meshes_are_their_own_working_copy():
+    """The meshes of ../shared/data are no denser than the working copy: read as they are (same figures)."""
+    for path in REAL_MESHES:
+        assert bonecad.load_bone(path).working is None, path.name
