@@ -279,7 +279,7 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
         with timings.stage("3-D view"):
             shown = [m for m in MODELS if m in reports]
             deviations = {m: dev.vertex_deviation_mm for m in shown if (dev := reports[m].deviation) is not None}
-            views_in_order = (input_view(bone.vertices, bone.faces, deviations,
+            views_in_order = (input_view(bone.work.vertices, bone.work.faces, deviations,
                                          settings.analysis.view_max_triangles),
                               *(views[m] for m in shown))
         with timings.stage("report"):
@@ -333,7 +333,7 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     tess = tessellate_model(model.shape, settings.analysis)
     side = ex.submit(zebra_and_continuity, name, model, tess, out_dir, view_frame, settings)
-    view = ex.submit(model_view, name, tess.vertices, tess.triangles, bone.vertices, bone.faces,
+    view = ex.submit(model_view, name, tess.vertices, tess.triangles, bone.work.vertices, bone.work.faces,
                      settings.analysis.view_max_triangles)
     deviation = model_deviation(tess, bone, frame, settings.analysis)
     shown = bone.work  # the colour map draws the working copy (its vertices' deviations)
