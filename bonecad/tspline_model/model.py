@@ -343,6 +343,8 @@ def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisati
                 problems.append(f"{bounds}{tol} mm: {exc}")
                 continue
             if is_valid(solid):
+                if edge_per_element:
+                    log.info("the T-spline's faces sewn bounded by one edge per element side (%s)", "; ".join(problems))
                 return solid, face_names
             problems.append(f"{bounds}{tol} mm: not valid (BRepCheck_Analyzer)")
     raise KernelError(f"the T-spline faces ({len(named)}) do not sew into a valid closed solid: " + "; ".join(problems))
