@@ -36,6 +36,27 @@ def phantom_frame(phantom):
     return bonecad.anatomical_frame(phantom)
 
 
+@pytest.fixture(scope="session")
+def phantom_contours(phantom, phantom_frame):
+    """The phantom's contour curves (shipped settings)."""
+    from bonecad.contours.curves import contour_curves
+
+    from .defaults import SETTINGS
+
+    return contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
+
+
+@pytest.fixture(scope="session")
+def phantom_tspline_model(phantom, phantom_frame, phantom_contours):
+    """The phantom's T-spline model (shipped settings): fitted tube, apex caps, sewn solid."""
+    from bonecad.tspline_model import build_tspline_model
+
+    from .defaults import SETTINGS
+
+    return build_tspline_model(phantom, phantom_frame, phantom_contours, settings=SETTINGS.tspline,
+                               apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)

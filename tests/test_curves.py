@@ -75,11 +75,6 @@ def test_spikes_are_bridged_and_reported():
     assert np.abs(np.linalg.norm(dense[:, :2], axis=1) - 15).max() < 0.05
 
 
-@pytest.fixture(scope="module")
-def phantom_contours(phantom, phantom_frame):
-    return contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
-
-
 def test_phantom_curves_shape(phantom_contours, phantom_frame):
     cs = phantom_contours
     assert len(cs.distal) == 28 and len(cs.proximal) == 28 and len(cs.shaft) >= 4

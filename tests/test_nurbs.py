@@ -72,8 +72,8 @@ def test_surface_matches_opencascade_and_reversal_keeps_points(rng):
 
 
 @pytest.fixture(scope="module")
-def contours(phantom, phantom_frame):
-    return contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
+def contours(phantom_contours):
+    return phantom_contours
 
 
 @pytest.fixture(scope="module")

@@ -142,13 +142,11 @@ def test_pipeline_section_reaches_the_runner(configured_run):
     assert not any(p.name.startswith("tspline") for p in out.iterdir())
 
 
-def test_tspline_section_reaches_the_fit(phantom, phantom_frame):
-    from bonecad.contours.curves import contour_curves
+def test_tspline_section_reaches_the_fit(phantom, phantom_frame, phantom_contours):
     from bonecad.tspline_model.model import build_tspline_model
 
-    contours = contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
     settings = replace(SETTINGS.tspline, max_control_points=300, max_rounds=2)
-    model = build_tspline_model(phantom, phantom_frame, contours, settings=settings,
+    model = build_tspline_model(phantom, phantom_frame, phantom_contours, settings=settings,
                                 apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
     assert model.control_points <= 300 and len(model.fit.history) <= 3
     assert model.fit.stopped and not model.fit.converged

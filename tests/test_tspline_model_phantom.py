@@ -9,20 +9,15 @@ import pytest
 
 from bonecad.splines.tspline import check_suitability
 from bonecad.export.registry import export
-from bonecad.tspline_model import build_tspline_model
-from tests.defaults import SETTINGS, TESSELLATION, BANDS_MM
+from tests.defaults import TESSELLATION, BANDS_MM
 from dataclasses import replace
 from bonecad.occ.tessellate import tessellate
 
 
 
 @pytest.fixture(scope="module")
-def model(phantom, phantom_frame):
-    from bonecad.contours.curves import contour_curves
-
-    contours = contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
-    return build_tspline_model(phantom, phantom_frame, contours, settings=SETTINGS.tspline,
-                               apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
+def model(phantom_tspline_model):
+    return phantom_tspline_model
 
 
 def test_fit_meets_the_bars_with_local_refinement(model):

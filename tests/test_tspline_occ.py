@@ -152,3 +152,32 @@ def test_merged_shell_is_valid_and_encloses_the_same_volume():
         BRepGProp.SurfaceProperties_s(shell, props, 1e-9)
         areas.append(props.Mass())
     assert abs(areas[0] - areas[1]) < 1e-7 * areas[1]
+
+
+@pytest.mark.parametrize("rational", [False, True])
+def test_merged_faces_bounded_by_one_edge_per_element_side(rational):
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
+
+    from bonecad.occ.brep import edges
+
+    ts = t_tube(4, rational=rational)
+    natural = occ.merged_faces(ts)
+    split = occ.merged_faces(ts, edge_per_element=True)
+    assert len(split) == len(natural)
+    for (face, block), (plain, _) in zip(split, natural):
+        assert is_valid(face)
+        assert BRep_Tool.Surface_s(face).Bounds() == BRep_Tool.Surface_s(plain).Bounds()
+        sides = 4 if block.size == 1 else 2 * sum(block.shape)  # a Bezier face keeps its natural bounds
+        assert len(edges(face)) == sides
+        assert max(BRep_Tool.Tolerance_s(e) for e in edges(face)) <= 1e-7
+    # the same shell, its edges cut at every element corner on a face's side
+    areas = []
+    for faces in (split, natural):
+        shell = sew([face for face, _ in faces], tolerance_mm=1e-6, closed=False)[0]
+        assert is_valid(shell)
+        props = GProp_GProps()
+        BRepGProp.SurfaceProperties_s(shell, props, 1e-9)
+        areas.append(props.Mass())
+    assert abs(areas[0] - areas[1]) < 1e-7 * areas[1]

@@ -1,8 +1,8 @@
 """B-rep assembly, checks and named export, shared by both models.
 
 numpy arrays -> OpenCascade arrays (poles, weights, knots). Faces -> one sewn
-shell (BRepBuilderAPI_Sewing) -> a solid oriented outward (point
-classification), each face keeping its name; checks (BRepCheck_Analyzer, free
+shell (BRepBuilderAPI_Sewing) -> a solid oriented outward (the sign of its
+volume), each face keeping its name; checks (BRepCheck_Analyzer, free
 edges, exact volume and area by adaptive integration: DESIGN.md measured
 BRepGProp's default 1 % off); STEP AP214 and IGES 5.3 files in mm with the solid
 and every face named (STEP entity names, XCAF sub-shape names).
@@ -17,11 +17,10 @@ from pathlib import Path
 import numpy as np
 from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid, BRepBuilderAPI_Sewing
 from OCP.BRepCheck import BRepCheck_Analyzer
-from OCP.BRepClass3d import BRepClass3d_SolidClassifier
 from OCP.BRepGProp import BRepGProp
 from OCP.GProp import GProp_GProps
 from OCP.ShapeAnalysis import ShapeAnalysis_FreeBounds
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_IN, TopAbs_REVERSED, TopAbs_SHELL, TopAbs_WIRE
+from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_REVERSED, TopAbs_SHELL, TopAbs_WIRE
 from OCP.TopExp import TopExp_Explorer
 from OCP.TColgp import TColgp_Array2OfPnt
 from OCP.TColStd import TColStd_Array2OfReal
@@ -35,6 +34,9 @@ log = logging.getLogger(__name__)
 
 #: Relative error of the adaptive volume and area integration.
 VOLUME_EPS = 1e-6
+#: Relative error of the volume integral whose sign orients a solid: 0.2 s for a
+#: 1500-face T-spline solid (the default integration: 10 s), within 1 % of the volume.
+ORIENTATION_EPS = 0.1
 #: STEP and IGES header date: the same model gives the same bytes.
 FIXED_TIMESTAMP = "2000-01-01T00:00:00"
 
@@ -131,20 +133,20 @@ def sew(
     return shell, [TopoDS.Face_s(sewing.Modified(face)) for face in faces]
 
 
-def solid_from_shell(shell: TopoDS_Shape, *, tolerance_mm: float = 1e-4) -> TopoDS_Shape:
+def solid_from_shell(shell: TopoDS_Shape) -> TopoDS_Shape:
     """The solid bounded by the closed ``shell``, oriented so that its volume is positive.
 
-    A solid turned inside out holds the point at infinity (ray classification,
-    a fraction of the time of a volume integral just for the sign). The
-    shell's faces stay as they are, so names given to them still apply.
+    The sign of a coarse volume integral (``ORIENTATION_EPS``) decides: ray
+    classification of the point at infinity (BRepClass3d_SolidClassifier)
+    called it inside a valid, outward T-spline solid of a refined tube, and
+    turned that solid inside out. The shell's faces stay as they are, so
+    names given to them still apply.
     """
     maker = BRepBuilderAPI_MakeSolid(TopoDS.Shell_s(shell))
     if not maker.IsDone():
         raise KernelError("OpenCascade could not make a solid of the sewn shell")
     solid = maker.Solid()
-    classifier = BRepClass3d_SolidClassifier(solid)
-    classifier.PerformInfinitePoint(tolerance_mm)
-    if classifier.State() == TopAbs_IN:
+    if volume_mm3(solid, ORIENTATION_EPS) < 0:
         solid.Reverse()
     return solid
 
