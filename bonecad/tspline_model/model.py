@@ -308,7 +308,7 @@ FACE_LAYOUTS = ("tube", "blocks", "elements")
 
 
 def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: AnatomicalFrame, *,
-               layout: str = "tube") -> tuple[object, list[tuple[str, object]]]:
+               layout: str) -> tuple[object, list[tuple[str, object]]]:
     """The tube's and the caps' faces (scanner coordinates), sewn into a closed, valid solid with outward faces.
 
     layout : "tube": the tube as one B-spline face named "tube", exactly (its
