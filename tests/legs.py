@@ -61,8 +61,8 @@ def load_leg(subject: str) -> Leg:
                     body = body.subdivide()
                 trimesh.smoothing.filter_taubin(body, lamb=0.5, nu=0.53, iterations=SMOOTHING_ITERATIONS)
             bodies.append(body)
-    tibia_count = len(trimesh.load(DATA / names[0], force="mesh").split(only_watertight=False))
-    tibia = max(bodies[:tibia_count], key=lambda b: abs(b.volume))
+        if name == names[0]:
+            tibia = max(bodies, key=lambda b: abs(b.volume))  # the tibia file's largest body
     offsets = np.cumsum([0] + [len(b.vertices) for b in bodies[:-1]])
     return Leg(
         subject=subject,

@@ -42,12 +42,16 @@ class _Version(argparse.Action):
         parser.exit()
 
 
+def _add_logging(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-v", "--verbose", action="store_true", help="log every step (debug)")
+    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, help="TOML file overriding defaults (angles, counts, tolerances)")
     p.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
                    help="units of the input mesh (default: auto, which accepts mm and names the unit otherwise)")
-    p.add_argument("-v", "--verbose", action="store_true", help="log every step (debug)")
-    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    _add_logging(p)
 
 
 def _add_stage(p: argparse.ArgumentParser) -> None:
@@ -135,8 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "boundaries through the Rhino grip map; no star points) and write tspline.step into --out.")
     p.add_argument("input", type=Path, help=".tsm file")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("-v", "--verbose", action="store_true", help="log every step (debug)")
-    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    _add_logging(p)
 
     p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
                        description="Generate the synthetic phantom tibia and run every stage available on it; "
