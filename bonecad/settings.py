@@ -26,7 +26,7 @@ from bonecad.errors import InputError
 
 ApexFill = Literal["ring", "patch"]
 Joins = Literal["G1", "C0"]
-FaceLayout = Literal["tube", "blocks", "elements"]
+FaceLayout = Literal["tube", "blocks", "elements", "panels"]
 ModelName = Literal["nurbs", "tspline"]
 
 
@@ -128,6 +128,8 @@ class TSplineSettings:
     noise_factor: float
     compare_tensor_product: bool
     face_layout: FaceLayout
+    panel_face_cost: float
+    panel_t_step: int
 
 
 @dataclass(frozen=True)

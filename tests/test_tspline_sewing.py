@@ -164,7 +164,7 @@ def test_refined_tube_sews_into_a_valid_closed_solid(phantom_fitted, spots, roun
     tube = refined(model.tspline, spots, rounds, noise_mm, seed)
     caps = apex_caps(tube, model.parameterisation, phantom_fitted.distal_points, phantom_fitted.proximal_points)
     solid, face_names = _occ_shape(tube, caps, model.parameterisation, model.frame,
-                                   layout=SETTINGS.tspline.face_layout)
+                                   settings=SETTINGS.tspline)
 
     assert solid.ShapeType() == TopAbs_SOLID and is_valid(solid)
     shells, explorer = 0, TopExp_Explorer(solid, TopAbs_SHELL)

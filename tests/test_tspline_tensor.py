@@ -7,7 +7,7 @@ import pytest
 from bonecad.errors import FitError
 from bonecad.splines.tspline import TSpline, check_suitability
 from bonecad.splines.tspline.refine import refine_elements
-from bonecad.splines.tspline.tensor import region_patch, tensor_product_form
+from bonecad.splines.tspline.tensor import panel_plan, region_patch, tensor_product_form
 
 
 def _t_spline(rng, periodic: bool) -> TSpline:
@@ -56,3 +56,42 @@ def test_region_patch_refuses_what_it_cannot_hold(rng):
     rational = ts.with_control_points(ts.control_points, np.linspace(1.0, 2.0, ts.n_control))
     with pytest.raises(FitError, match="polynomial"):
         tensor_product_form(rational)
+
+
+def test_region_patch_knots_only_where_elements_break(rng):
+    """A rectangle inside one row of elements has no t knot at the t-lines that only other rows' T-junctions
+    put there: its exact form has fewer poles than one on every line it crosses."""
+    ts = _t_spline(rng, True)
+    ext = ts.extraction
+    e = int(np.argmax(np.diff(ext.t_bounds, axis=1)[:, 0] * np.diff(ext.s_bounds, axis=1)[:, 0]))
+    (s0, s1), (t0, t1) = ext.s_bounds[e], ext.t_bounds[e]
+    patch = region_patch(ts, (s0, s1), (t0, t1))
+    assert len(patch.knots_u) == len(patch.knots_v) == 8  # one Bezier element: clamped ends only
+    u, v = rng.uniform(s0, s1, 500), rng.uniform(t0, t1, 500)
+    assert np.abs(patch.evaluate(u, v).points - ts.evaluate(u, v).points).max() < 1e-9
+
+
+@pytest.mark.parametrize("face_cost", [0.0, 40.0, 1e4])
+def test_panel_plan_tiles_the_tube_exactly(rng, face_cost):
+    ts = _t_spline(rng, True)
+    (s_lo, s_hi), (t_lo, t_hi) = ts.mesh.s_range, ts.mesh.t_range
+    cut = float(ts.mesh.t_lines[5])
+    plan = panel_plan(ts, t_cuts=(cut,), face_cost=face_cost, t_step=1)
+    area = sum((s1 - s0) * (t1 - t0) for s0, s1, t0, t1 in plan)
+    assert area == pytest.approx((s_hi - s_lo) * (t_hi - t_lo), rel=1e-12)
+    assert all(s1 - s0 < ts.mesh.s_period for s0, s1, _, _ in plan) and len(plan) >= 2
+    assert not any(t0 < cut < t1 for _, _, t0, t1 in plan)  # never across a forced cut
+    # every sample lies in one panel, whose exact form gives the T-spline's point there
+    s, t = rng.uniform(s_lo, s_hi, 3000), rng.uniform(t_lo, t_hi, 3000)
+    owner = np.full(len(s), -1)
+    for k, (s0, s1, t0, t1) in enumerate(plan):
+        inside = (s >= s0) & (s < s1) & (t >= t0) & (t < t1)
+        assert (owner[inside] < 0).all()
+        owner[inside] = k
+        if inside.any():
+            patch = region_patch(ts, (s0, s1), (t0, t1))
+            assert np.abs(patch.evaluate(s[inside], t[inside]).points - ts.evaluate(s[inside], t[inside]).points
+                          ).max() < 1e-9
+    assert (owner >= 0).all()
+    if face_cost >= 1e4:  # faces dear: the fewest the rules allow (two per strip, strips only at the cut)
+        assert len(plan) == 4

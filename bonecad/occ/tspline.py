@@ -11,7 +11,9 @@
   block becomes one Geom_BSplineSurface: the Bezier patches joined with triple
   knots, then every interior knot lowered to multiplicity 1 by OpenCascade's
   knot removal (tolerance 1e-7 mm; the T-spline is C2 inside a block); its face has the natural
-  bounds of the surface, or on request one edge per element side (``merged_faces``).
+  bounds of the surface, or on request one edge per element side (``merged_faces``);
+- leaner still (``panel_faces``): one face per rectangle of a panel plan, each the
+  T-spline's exact B-spline form over it (knots only where elements break).
 """
 from __future__ import annotations
 
@@ -26,6 +28,8 @@ from OCP.TopoDS import TopoDS_Face, TopoDS_Shape, TopoDS_Wire
 
 from bonecad.errors import KernelError
 from bonecad.occ.brep import array1, pole_grid, real_grid, sew
+from bonecad.occ.surfaces import to_geom_surface
+from bonecad.splines.tspline.tensor import region_patch
 from bonecad.splines.tspline.tspline import TSpline
 
 #: Largest relative weight spread still written as a polynomial Bezier patch.
@@ -290,6 +294,23 @@ def merged_faces(ts: TSpline, *, tolerance_mm: float = 1e-7,
             raise KernelError(f"OpenCascade could not make a face of a block of {block.size} Bezier elements "
                               f"(error {maker.Error()})")
         faces.append((maker.Face(), block))
+    return faces
+
+
+def panel_faces(ts: TSpline, panels, *, tolerance_mm: float = 1e-7,
+                edge_per_span: bool = False) -> list[TopoDS_Face]:
+    """One face per rectangle (s0, s1, t0, t1) of ``panels``: the T-spline's exact clamped B-spline
+    form over it (:func:`~bonecad.splines.tspline.tensor.region_patch`), bounded naturally or, with
+    ``edge_per_span``, by one edge per knot span of its sides (see ``merged_faces``)."""
+    faces = []
+    for s0, s1, t0, t1 in panels:
+        surf = to_geom_surface(region_patch(ts, (s0, s1), (t0, t1)))
+        maker = (BRepBuilderAPI_MakeFace(surf, _element_edges_wire(surf, tolerance_mm), True) if edge_per_span
+                 else BRepBuilderAPI_MakeFace(surf, tolerance_mm))
+        if not maker.IsDone():
+            raise KernelError(f"OpenCascade could not make the face of the panel s {s0:.2f}-{s1:.2f}, "
+                              f"t {t0:.2f}-{t1:.2f} (error {maker.Error()})")
+        faces.append(maker.Face())
     return faces
 
 

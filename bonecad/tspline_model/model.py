@@ -271,7 +271,7 @@ def build_tspline_model(
     caps = apex_caps(tube, par, vertices[hole_d], vertices[hole_p])
     timings["caps"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    shape, face_names = _occ_shape(tube, caps, par, frame, layout=st.face_layout)
+    shape, face_names = _occ_shape(tube, caps, par, frame, settings=st)
     timings["occ"] = time.perf_counter() - clock
     return TSplineModel(
         tspline=tube,
@@ -304,26 +304,31 @@ def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
     return ts.with_control_points(frame.to_scanner(ts.control_points), ts.weights)
 
 
-FACE_LAYOUTS = ("tube", "blocks", "elements")
+FACE_LAYOUTS = ("tube", "panels", "blocks", "elements")
 
 
 def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: AnatomicalFrame, *,
-               layout: str) -> tuple[object, list[tuple[str, object]]]:
+               settings: TSplineSettings) -> tuple[object, list[tuple[str, object]]]:
     """The tube's and the caps' faces (scanner coordinates), sewn into a closed, valid solid with outward faces.
 
-    layout : "tube": the tube as one B-spline face named "tube", exactly (its
+    settings.face_layout : "tube": the tube as one B-spline face named "tube", exactly (its
     tensor-product form on all its knot lines,
     :func:`~bonecad.splines.tspline.tensor.tensor_product_form`), and each cap as
-    one face; "blocks": one B-spline face per tensor-product block of Bezier
-    elements (exactly the same surface); "elements": one Bezier face per element.
-    Tube faces of "blocks" and "elements" are named by the region ("distal",
-    "shaft", "proximal") that holds the middle of their t-range. Cap faces are
-    "distal_apex_cap" / "proximal_apex_cap". Returns (solid, [(name, face)]).
+    one face; "panels": one B-spline face per rectangle of the tube's panel plan
+    (:func:`~bonecad.splines.tspline.tensor.panel_plan`, cut at the region
+    boundaries; exactly the same surface, the fewest poles); "blocks": one B-spline
+    face per tensor-product block of Bezier elements (exactly the same surface);
+    "elements": one Bezier face per element. Tube faces of "panels", "blocks" and
+    "elements" are named by the region ("distal", "shaft", "proximal") that holds
+    the middle of their t-range. Cap faces are "distal_apex_cap" /
+    "proximal_apex_cap" (one per block of the cap's elements but with "tube").
+    Returns (solid, [(name, face)]).
     """
     from bonecad.occ.brep import is_valid, named_solid
-    from bonecad.occ.tspline import bezier_faces, bspline_face, merged_faces
-    from bonecad.splines.tspline.tensor import tensor_product_form
+    from bonecad.occ.tspline import bezier_faces, bspline_face, merged_faces, panel_faces
+    from bonecad.splines.tspline.tensor import panel_plan, tensor_product_form
 
+    layout = settings.face_layout
     if layout not in FACE_LAYOUTS:
         raise ValueError(f"face layout must be one of {FACE_LAYOUTS}, got {layout!r}")
 
@@ -331,10 +336,18 @@ def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisati
         """Faces of a patch and the t in the middle of each (parameters of ``ts``)."""
         ext = ts.extraction
         scanner = to_scanner(ts, frame)
-        if layout == "blocks":
-            pairs = merged_faces(scanner, edge_per_element=edge_per_element)
-            return [f for f, _ in pairs], np.array([ext.t_bounds[b].mean() for _, b in pairs])
-        return bezier_faces(scanner), ext.t_bounds.mean(axis=1)
+        if layout == "elements":
+            return bezier_faces(scanner), ext.t_bounds.mean(axis=1)
+        pairs = merged_faces(scanner, edge_per_element=edge_per_element)
+        return [f for f, _ in pairs], np.array([ext.t_bounds[b].mean() for _, b in pairs])
+
+    def tube_faces(edge_per_element: bool) -> tuple[list, np.ndarray]:
+        if layout != "panels":
+            return faces_of(tube, edge_per_element)
+        plan = panel_plan(tube, t_cuts=(par.t_distal, par.t_proximal), face_cost=settings.panel_face_cost,
+                          t_step=settings.panel_t_step)
+        return (panel_faces(to_scanner(tube, frame), plan, edge_per_span=edge_per_element),
+                np.array([0.5 * (t0 + t1) for _, _, t0, t1 in plan]))
 
     if layout == "tube":
         cap_faces = [(f"{cap.end}_apex_cap", bspline_face(to_scanner(cap.tspline, frame))) for cap in caps]
@@ -344,11 +357,11 @@ def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisati
     # A side of a merged tube face that curls back to within the sewing tolerance of itself (a
     # crumpled surface of tiny elements) stays unsewn; bounded by one edge per element side, it
     # sews (merged_faces: edge_per_element). The lean faces first, as they sew ~4x faster.
-    for edge_per_element in (False, True) if layout == "blocks" else (False,):
+    for edge_per_element in (False, True) if layout in ("blocks", "panels") else (False,):
         if layout == "tube":
             named = [("tube", bspline_face(to_scanner(tensor_product_form(tube), frame))), *cap_faces]
         else:
-            faces, t_mid = faces_of(tube, edge_per_element)
+            faces, t_mid = tube_faces(edge_per_element)
             regions = np.where(t_mid < par.t_distal, "distal", np.where(t_mid > par.t_proximal, "proximal", "shaft"))
             named = list(zip(regions.tolist(), faces)) + cap_faces
         bounds = "one edge per element side, " if edge_per_element else ""

@@ -14,7 +14,11 @@ checked (``EXACT_MM``).
   tensor-product T-spline: periodic in s when the T-spline is);
 - :func:`region_patch`: the rectangle as one clamped, untrimmed
   :class:`~bonecad.splines.surface.BSplineSurface` (u = s, v = t, parameters
-  kept), e.g. a plate's footprint on a bone.
+  kept), e.g. a plate's footprint on a bone. Its interior knots are only the
+  element boundaries inside the rectangle (where the surface may break), so a
+  rectangle that a T-junction's line does not cross has no knot there;
+- :func:`panel_plan`: rectangles covering the T-spline with the fewest poles
+  (a lean B-rep: one exact B-spline face per rectangle).
 """
 from __future__ import annotations
 
@@ -132,15 +136,12 @@ def region_patch(ts: TSpline, s_range: tuple[float, float], t_range: tuple[float
     if mesh.s_period is not None:
         if not (s0 < s1 and s1 - s0 < mesh.s_period):
             raise ValueError(f"s range [{s0}, {s1}] must be increasing and shorter than the period {mesh.s_period}")
-        turns = np.arange(np.floor((s0 - mesh.s_lines[0]) / mesh.s_period) - 1,
-                          np.ceil((s1 - mesh.s_lines[0]) / mesh.s_period) + 1)
-        s_lines = (mesh.s_lines[None, :] + mesh.s_period * turns[:, None]).ravel()
     else:
         lo_s, hi_s = mesh.s_range
         if not (lo_s <= s0 < s1 <= hi_s):
             raise ValueError(f"s range [{s0}, {s1}] is not an interval inside [{lo_s}, {hi_s}]")
-        s_lines = mesh.s_lines
-    knots_u, knots_v = _clamped_knots(s_lines, s0, s1), _clamped_knots(mesh.t_lines, t0, t1)
+    s_breaks, t_breaks = _element_breaks(ts, (s0, s1), (t0, t1))
+    knots_u, knots_v = _clamped_knots(s_breaks, s0, s1), _clamped_knots(t_breaks, t0, t1)
     gu, gv = _greville(knots_u), _greville(knots_v)
     uu, vv = np.meshgrid(gu, gv, indexing="ij")
     values = ts.evaluate(_wrapped(mesh, uu.ravel()), vv.ravel()).points.reshape(len(gu), len(gv), 3)
@@ -150,6 +151,99 @@ def region_patch(ts: TSpline, s_range: tuple[float, float], t_range: tuple[float
     ss, tt = (a.ravel() for a in np.meshgrid(s, t))
     _check(ts.evaluate(_wrapped(mesh, ss), tt).points, patch.evaluate(ss, tt).points, "the region patch")
     return patch
+
+
+def _element_breaks(ts: TSpline, s_range: tuple[float, float], t_range: tuple[float, float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The s and t values of the Bezier element boundaries of ``ts`` that meet the open rectangle
+    s_range x t_range (s unwrapped like s_range): the only places inside it where the surface
+    may break, so the knots its exact B-spline form needs there."""
+    ext = ts.extraction
+    (s0, s1), (t0, t1) = s_range, t_range
+    period = ts.mesh.s_period
+    shifts = np.arange(np.floor((s0 - ext.s_bounds.max()) / period), np.ceil((s1 - ext.s_bounds.min()) / period) + 1
+                       ) * period if period is not None else np.zeros(1)
+    s_bounds = (ext.s_bounds[None, :, :] + shifts[:, None, None]).reshape(-1, 2)
+    t_bounds = np.tile(ext.t_bounds, (len(shifts), 1))
+    meets = (s_bounds[:, 0] < s1) & (s_bounds[:, 1] > s0) & (t_bounds[:, 0] < t1) & (t_bounds[:, 1] > t0)
+    return s_bounds[meets].ravel(), t_bounds[meets].ravel()
+
+
+def panel_plan(ts: TSpline, *, t_cuts: tuple[float, ...] = (), face_cost: float, t_step: int
+               ) -> tuple[tuple[float, float, float, float], ...]:
+    """Rectangles (s0, s1, t0, t1) that tile the T-spline's domain, chosen for the fewest poles of their
+    exact B-spline forms (:func:`region_patch`): a guillotine plan of strips across t, each cut
+    across s, found by dynamic programming.
+
+    The cost of a rectangle is its poles, plus the poles of two of its four sides (a side's boundary
+    curve, shared with the neighbour), plus ``face_cost`` (a face's own entities in a B-rep). Strips
+    start and end on every ``t_step``-th t-line and on the lines of ``t_cuts`` (which they never
+    cross); panels start and end on s-lines and never close round s: every strip is cut at the
+    first s-line. For a tube (periodic s). Deterministic.
+    """
+    ext = ts.extraction
+    mesh = ts.mesh
+    if not mesh.periodic:
+        raise ValueError("a panel plan is made for a tube (periodic s)")
+    cells = ext.cell_element
+    n_s, n_t = cells.shape
+    columns = np.nonzero((cells >= 0).all(axis=0))[0]  # t cells of nonzero height
+    first, end = int(columns[0]), int(columns[-1]) + 1
+    forced = [int(np.argmin(np.abs(mesh.t_lines[first:end + 1] - t))) + first for t in t_cuts]
+    candidates = sorted({*range(first, end, t_step), end, *forced})
+    # s_break[k, j]: s-line k separates different elements in t cell j; t_break[k, l]: t-line l does in s cell k
+    s_break = cells != np.roll(cells, 1, axis=0)
+    t_break = np.zeros((n_s, n_t + 1), dtype=bool)
+    t_break[:, 1:-1] = cells[:, 1:] != cells[:, :-1]
+    def strip(c: int, d: int) -> tuple[float, list[int]]:
+        """The cheapest cut of t cells c..d-1 across s: (cost, s-line indices of the cuts)."""
+        inside_s = np.concatenate([[0], np.cumsum(s_break[:, c:d].any(axis=1))])
+        # t-lines c+1..d-1 that break in some s cell of a..b-1: the first such cell from a, per line
+        rows = t_break[:, c + 1:d]
+        nxt = np.where(rows, np.arange(n_s)[:, None], n_s)
+        nxt = np.minimum.accumulate(nxt[::-1], axis=0)[::-1]
+        counts = np.zeros((n_s, n_s + 2), dtype=np.int64)
+        np.add.at(counts, (np.repeat(np.arange(n_s), rows.shape[1]), nxt.ravel() + 1), 1)
+        inside_t = np.cumsum(counts, axis=1)[:, :n_s + 1]  # [a, b]: t-lines breaking in cells a..b-1
+        a, b = np.triu_indices(n_s + 1, 1)  # a panel from s-line a to s-line b (line n_s: line 0 a turn on)
+        nu = inside_s[b] - inside_s[a + 1] + 4
+        nv = inside_t[a, b] + 4
+        cost = np.full((n_s + 1, n_s + 1), np.inf)
+        cost[a, b] = nu * nv + nu + nv + face_cost
+        cost[0, n_s] = np.inf  # never round the whole tube
+        best = np.full(n_s + 1, np.inf)
+        best[0] = 0.0
+        back = np.zeros(n_s + 1, dtype=np.int64)
+        for k in range(1, n_s + 1):
+            totals = best[:k] + cost[:k, k]
+            back[k] = int(np.argmin(totals))
+            best[k] = totals[back[k]]
+        cuts = [n_s]
+        while cuts[-1] > 0:
+            cuts.append(int(back[cuts[-1]]))
+        return float(best[n_s]), cuts[::-1]
+
+    n_c = len(candidates)
+    strips = {(i, j): strip(candidates[i], candidates[j]) for i in range(n_c) for j in range(i + 1, n_c)
+              if not any(candidates[i] < f < candidates[j] for f in forced)}
+    best = np.full(n_c, np.inf)
+    best[0] = 0.0
+    back = np.zeros(n_c, dtype=np.int64)
+    for j in range(1, n_c):
+        for i in range(j):
+            if (i, j) in strips and best[i] + strips[i, j][0] < best[j]:
+                best[j], back[j] = best[i] + strips[i, j][0], i
+    t_cuts_idx = [n_c - 1]
+    while t_cuts_idx[-1] > 0:
+        t_cuts_idx.append(int(back[t_cuts_idx[-1]]))
+    t_cuts_idx = t_cuts_idx[::-1]
+    s_value = np.append(mesh.s_lines, mesh.s_lines[0] + mesh.s_period)
+    panels: list[tuple[float, float, float, float]] = []
+    for i, j in zip(t_cuts_idx, t_cuts_idx[1:]):
+        t0, t1 = float(mesh.t_lines[candidates[i]]), float(mesh.t_lines[candidates[j]])
+        s_cuts = strips[i, j][1]
+        panels.extend((float(s_value[a]), float(s_value[b]), t0, t1) for a, b in zip(s_cuts, s_cuts[1:]))
+    return tuple(panels)
 
 
 def _wrapped(mesh, s: np.ndarray) -> np.ndarray:
