@@ -74,6 +74,23 @@ class AnatomySettings:
 
 
 @dataclass(frozen=True)
+class MorphometrySettings:
+    """``bonecad measure``: the plateau section (mm below the plateau centre), the condyle centre lines (share
+    of the plateau width from each edge), the plateau surface's window for the slopes (mm below the plateau
+    centre), the distal articular surface (band about the plafond level, mm; facing within degrees of distal),
+    the distal zone of the bimalleolar width (mm above the plafond centre), the medial malleolus's section of the
+    torsion (mm below it)."""
+
+    plateau_section_depth_mm: float
+    condyle_share: float
+    slope_window_mm: float
+    plafond_band_mm: float
+    plafond_facing_deg: float
+    distal_zone_mm: float
+    malleolus_depth_mm: float
+
+
+@dataclass(frozen=True)
 class CurvesSettings:
     """Contour curves: half-plane angles (degrees from lateral towards anterior), control points,
     tolerances (mm), shaft section spacing (mm), apex hole radius (mm), the stiffer refit of a curve that
@@ -186,6 +203,7 @@ class Settings:
     units: UnitsSettings
     mesh: MeshSettings
     anatomy: AnatomySettings
+    morphometry: MorphometrySettings
     curves: CurvesSettings
     nurbs: NurbsSettings
     tspline: TSplineSettings

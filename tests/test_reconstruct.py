@@ -5,6 +5,7 @@ import json
 
 import pytest
 
+from bonecad.anatomy.morphometry import PARAMETER_NAMES
 from bonecad.run.cli import main
 
 CONTRACT = {"nurbs.step", "nurbs.iges", "curves.step", "curves.iges", "curves.json", "frame.json", "report.json",
@@ -37,7 +38,8 @@ def test_report_json(nurbs_run):
     shares = nurbs["deviation"]["mesh_to_cad"]["histogram"]["shares"]
     assert sum(shares) == pytest.approx(1.0, abs=1e-9)
     assert set(nurbs["deviation"]["mesh_to_cad"]["regions"]) == {"distal", "shaft", "proximal"}
-    assert set(report["timings_s"]) >= {"input", "anatomical frame", "contour curves", "NURBS model"}
+    assert set(report["timings_s"]) >= {"input", "anatomical frame", "contour curves", "NURBS model", "morphometry"}
+    assert list(report["morphometry"]) == list(PARAMETER_NAMES)  # `bonecad measure`'s values, cheaply
 
 
 def test_nurbs_step_is_one_closed_valid_solid(nurbs_run, phantom):

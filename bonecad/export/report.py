@@ -32,7 +32,8 @@ report.json schema (``"schema": "bonecad.report/1"``)::
                          "max_mm": {"mesh_to_cad", "cad_to_mesh"}, "rms_mm": {...},
                          "seam_classes": {"gap", "C0", "G1", "G2"}, "files_bytes": {file name: bytes}}},
       "contours": [{"region", "curves", "control_points_per_curve", "tolerance_mm",
-                    "worst_max_deviation_mm", "mean_rms_deviation_mm", "within_tolerance", "repairs"}] or null
+                    "worst_max_deviation_mm", "mean_rms_deviation_mm", "within_tolerance", "repairs"}] or null,
+      "morphometry": {parameter: value (mm, degrees; `bonecad measure`'s PARAMETERS)} or null
     }
 
 report.html (``bonecad.export.report_page``) shows the same for people: the
@@ -232,6 +233,7 @@ def build_report(
     tolerances: Tolerances | None = None,
     contours: ContourSet | None = None,
     out_dir: Path | None = None,
+    morphometry: dict[str, float] | None = None,
 ) -> dict[str, Any]:
     """The report.json content (see module doc for the schema); file sizes are those in ``out_dir``."""
     names = [m.name for m in models]
@@ -257,6 +259,7 @@ def build_report(
             "tolerances": tolerances.to_dict() if tolerances else None,
             "summary": {m.name: model_summary(m, tolerances, out_dir) for m in models},
             "contours": contour_rows(contours) if contours is not None else None,
+            "morphometry": morphometry,
         }
     )
 
@@ -274,6 +277,7 @@ class ReportDocument:
     tolerances: Tolerances | None = None
     contours: ContourSet | None = None
     viewer: str = ""
+    morphometry: dict[str, float] | None = None  # the tibia's parameters (``bonecad measure``), mm and degrees
 
     def build(self, out_dir: Path | None = None) -> dict[str, Any]:
         """The report.json content; ``out_dir``: the folder whose model files the summary sizes."""
@@ -283,7 +287,7 @@ class ReportDocument:
                     raise FileNotFoundError(f"figure '{fig_name}' of model '{m.name}' is missing: {path}")
         return build_report(input_summary=self.input_summary, frame=self.frame, models=list(self.models),
                             timings_s=self.timings_s, tolerances=self.tolerances, contours=self.contours,
-                            out_dir=out_dir)
+                            out_dir=out_dir, morphometry=self.morphometry)
 
 
 @exporter("report", "json")

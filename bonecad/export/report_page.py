@@ -242,6 +242,10 @@ def render_html(report: dict[str, Any], figures: dict[str, dict[str, Path]], vie
     if report.get("frame"):
         parts += ["<h2>Anatomical frame</h2>", table(frame_rows(report["frame"]),
                                                      ["entity", "x", "y", "z", "value", "unit"])]
+    if report.get("morphometry"):
+        parts += ["<h2>Morphometry (bonecad measure)</h2>",
+                  table([{"parameter": k, "value": round(v, 1)} for k, v in report["morphometry"].items()],
+                        ["parameter", "value"])]
     for name, model in report["models"].items():
         parts.append(f"<h2>Model: {html.escape(name)}</h2>")
         if model["deviation"]:

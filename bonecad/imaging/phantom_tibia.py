@@ -14,7 +14,8 @@ import numpy as np
 
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import prepare_bone
-from bonecad.settings import MeshSettings, UnitsSettings
+from bonecad.mesh.sections import hull_edge_across, line_crossings, polygon_centroid
+from bonecad.settings import MeshSettings, MorphometrySettings, UnitsSettings
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,16 @@ class TibiaParameters:
     malleolus_length_mm: float = 14.0  # how far the medial malleolus reaches below the plafond
     tuberosity_height_mm: float = 9.0  # anterior prominence
     voxel_mm: float = 1.0  # marching-cubes resolution
+    # Posterior slope of each condyle's surface, degrees from the plane perpendicular to the phantom's long
+    # axis (positive: falls posteriorly), and the external torsion of the distal end against the plateau,
+    # degrees (the sections turn progressively along the shaft). 0 leaves the phantom as it always was.
+    medial_slope_deg: float = 0.0
+    lateral_slope_deg: float = 0.0
+    torsion_deg: float = 0.0
+
+
+# The plafond's dome for the talus (mm high at the centre).
+_PLAFOND_DOME_MM = 3.0
 
 
 def _smoothstep(x: np.ndarray) -> np.ndarray:
@@ -47,6 +58,9 @@ def _smooth_min(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
 def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> np.ndarray:
     """Approximate signed distance (mm, negative inside) of the phantom at bone coordinates."""
     L = p.length_mm
+    # Torsion: the distal sections turn clockwise seen from above (external) by up to torsion_deg.
+    twist = np.radians(p.torsion_deg) * _smoothstep((0.70 * L - z) / (0.54 * L))
+    x, y = x * np.cos(twist) - y * np.sin(twist), x * np.sin(twist) + y * np.cos(twist)
     top = _smoothstep((z - 0.70 * L) / (0.26 * L))  # 0 in the shaft, 1 at the plateau
     bottom = _smoothstep((0.16 * L - z) / (0.14 * L))  # 1 at the plafond
     half_w = 0.5 * (p.shaft_width_mm + top * (p.plateau_width_mm - p.shaft_width_mm)
@@ -66,13 +80,17 @@ def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> n
     # Ends: the plateau (two condylar dishes, the intercondylar eminence
     # between them) and the plafond (a dome for the talus), rounded into the sides.
     lateral_half = 0.25 * p.plateau_width_mm
+    # each condyle's slope, blended across the intercondylar eminence (x = 0)
+    slope = np.radians(p.medial_slope_deg + (p.lateral_slope_deg - p.medial_slope_deg) * _smoothstep((x + 5.0) / 10.0))
     top = (
         L
+        + np.tan(slope) * (y - cy)
         - 3.0 * np.exp(-(((np.abs(x) - lateral_half) / (0.5 * lateral_half)) ** 2)
                        - ((y - cy) / (0.25 * p.plateau_depth_mm)) ** 2)
         + 5.0 * np.exp(-((x / 5.0) ** 2) - ((y - cy) / 8.0) ** 2)
     )
-    bottom_surface = 3.0 * np.exp(-((x / (0.25 * p.distal_width_mm)) ** 2) - ((y / (0.25 * p.distal_depth_mm)) ** 2))
+    bottom_surface = _PLAFOND_DOME_MM * np.exp(-((x / (0.25 * p.distal_width_mm)) ** 2)
+                                               - ((y / (0.25 * p.distal_depth_mm)) ** 2))
     body = -_smooth_min(-body, -np.maximum(z - top, bottom_surface - z), 3.0)
     # Tibial tuberosity: an ellipsoid on the anterior proximal shaft.
     tz = L - 0.11 * L
@@ -87,6 +105,23 @@ def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> n
     return body
 
 
+def _grid(p: TibiaParameters) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The marching-cubes grid (mm). Its top plane cuts the intercondylar eminence flat (the plateau's
+    highest points), raised by what a sloped condyle's anterior rim rises."""
+    h = p.voxel_mm
+    margin = 3.0 * h
+    # Grid offset by a fraction of a voxel: field values exactly zero at grid
+    # points (the flat ends) make marching cubes emit non-manifold vertices.
+    jitter = 0.371 * h
+    half = 0.5 * max(p.plateau_width_mm, p.distal_width_mm) + 10.0
+    rise = 0.5 * p.plateau_depth_mm * max(np.tan(np.radians(p.medial_slope_deg)),
+                                          np.tan(np.radians(p.lateral_slope_deg)), 0.0)
+    xs = np.arange(-half - margin, half + margin, h) + jitter
+    ys = np.arange(-p.plateau_depth_mm - margin, p.plateau_depth_mm + margin, h) + jitter
+    zs = np.arange(-p.malleolus_length_mm - 10.0, p.length_mm + margin + rise, h) + jitter
+    return xs, ys, zs
+
+
 def phantom_tibia(params: TibiaParameters, *, settings: MeshSettings, plausible: UnitsSettings) -> BoneMesh:
     """A closed triangle mesh of the phantom (a right tibia in bone coordinates, mm)."""
     from skimage.measure import marching_cubes
@@ -94,14 +129,7 @@ def phantom_tibia(params: TibiaParameters, *, settings: MeshSettings, plausible:
 
     p = params
     h = p.voxel_mm
-    margin = 3.0 * h
-    # Grid offset by a fraction of a voxel: field values exactly zero at grid
-    # points (the flat ends) make marching cubes emit non-manifold vertices.
-    jitter = 0.371 * h
-    half = 0.5 * max(p.plateau_width_mm, p.distal_width_mm) + 10.0
-    xs = np.arange(-half - margin, half + margin, h) + jitter
-    ys = np.arange(-p.plateau_depth_mm - margin, p.plateau_depth_mm + margin, h) + jitter
-    zs = np.arange(-p.malleolus_length_mm - 10.0, p.length_mm + margin, h) + jitter
+    xs, ys, zs = _grid(p)
     X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
     field = _field(X, Y, Z, p).astype(np.float32)
     verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(h, h, h))
@@ -110,3 +138,129 @@ def phantom_tibia(params: TibiaParameters, *, settings: MeshSettings, plausible:
     trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=10)
     source = "phantom:" + ",".join(f"{k}={v:g}" for k, v in asdict(p).items())
     return prepare_bone(mesh.vertices, mesh.faces, source=source, units="mm", settings=settings, plausible=plausible)
+
+
+# Where the design values are found on the exact implicit surface: coarse steps along a ray or a vertical
+# line (mm), refined by bisection to well under a micrometre.
+_COARSE_STEP_MM = 0.5
+_BISECTIONS = 12
+_RAYS = 720
+#: the shaft levels of the design values: shares of the length above the plafond centre (percent)
+DESIGN_SHAFT_LEVELS = (20, 35, 50, 65, 80)
+
+
+def _first_exit(p: TibiaParameters, start: np.ndarray, direction: np.ndarray, reach: float) -> np.ndarray:
+    """Distance (mm) from each (n, 3) start point, inside the bone, along its (n, 3) unit direction to where
+    the exact surface is first crossed outwards; NaN where the start is outside or nothing is crossed
+    within ``reach``."""
+    steps = np.arange(0.0, reach + _COARSE_STEP_MM, _COARSE_STEP_MM)
+    pts = start[:, None, :] + steps[None, :, None] * direction[:, None, :]
+    outside = _field(pts[..., 0], pts[..., 1], pts[..., 2], p) > 0
+    first = np.argmax(outside, axis=1)
+    found = ~outside[:, 0] & outside[np.arange(len(start)), first]
+    lo, hi = steps[np.maximum(first - 1, 0)], steps[first]
+    for _ in range(_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        q = start + mid[:, None] * direction
+        out = _field(q[:, 0], q[:, 1], q[:, 2], p) > 0
+        lo, hi = np.where(out, lo, mid), np.where(out, mid, hi)
+    return np.where(found, 0.5 * (lo + hi), np.nan)
+
+
+def design_section(p: TibiaParameters, z: float, centre: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """(720, 2) x, y of the exact surface's section at height ``z`` (mm, phantom coordinates), seen as a
+    star from ``centre`` (every section of the phantom is one from its axis, and the malleolus's from its own)."""
+    angle = np.linspace(0.0, 2.0 * np.pi, _RAYS, endpoint=False)
+    direction = np.column_stack([np.cos(angle), np.sin(angle), np.zeros(_RAYS)])
+    start = np.tile([centre[0], centre[1], z], (_RAYS, 1))
+    r = _first_exit(p, start, direction, 0.5 * max(p.plateau_width_mm, p.plateau_depth_mm) + 20.0)
+    return start[:, :2] + r[:, None] * direction[:, :2]
+
+
+def _vertical_profile(p: TibiaParameters, origin: np.ndarray, along: np.ndarray, z_from: float, reach: float
+                      ) -> np.ndarray:
+    """(k, 2) points (distance from ``origin`` (2,) along the horizontal unit ``along`` (2,), z) of the exact
+    surface met going down from ``z_from`` in that vertical plane, every 0.05 mm within +- ``reach``."""
+    u = np.arange(-reach, reach, 0.05)
+    start = np.column_stack([origin + u[:, None] * along, np.full(len(u), z_from)])
+    r = _first_exit(p, start, np.tile([0.0, 0.0, -1.0], (len(u), 1)), 30.0)
+    ok = np.isfinite(r)
+    return np.column_stack([u[ok], z_from - r[ok]])
+
+
+def _articular_extent(profile: np.ndarray, level: float, s: MorphometrySettings) -> float:
+    """Extent (mm) of a distal profile's part facing distally within the band about the plafond level."""
+    slope = np.abs(np.gradient(profile[:, 1], profile[:, 0]))
+    facing = (slope < np.tan(np.radians(s.plafond_facing_deg))) & (np.abs(profile[:, 1] - level) < s.plafond_band_mm)
+    return float(np.ptp(profile[facing, 0]))
+
+
+def design_measurements(p: TibiaParameters, settings: MorphometrySettings) -> dict[str, float]:
+    """The phantom's design values under the definitions of ``bonecad measure`` (its ``PARAMETERS``), found on
+    the exact implicit surface (never on a mesh): mm and degrees, in the phantom's coordinates (x lateral,
+    y anterior, z along its long axis), with the anatomical frame's landmarks as the frame defines them:
+    the plafond centre at the dome's area-weighted median height (``_PLAFOND_DOME_MM`` e^-2; the frame
+    takes the median of the distal-facing surface, where the malleolus's tip adds a few mm^2) above the
+    centroid of the sections 2-10 mm higher, the plateau centre on the surface above the plateau
+    section's centre. The frame's axis leans back from the phantom's z by the plateau's posterior offset;
+    the slopes are measured from the plane perpendicular to it. Lengths and sections ignore that lean
+    (cos 1-2 deg: < 0.1 mm)."""
+    s = settings
+    L = p.length_mm
+    z_cap = float(_grid(p)[2][-1])  # the grid's top plane cuts the eminence
+    z_pf = _PLAFOND_DOME_MM * np.exp(-2.0)
+    # (the section 2 mm up is a ring round the dome, not a star from the axis: its centroid is NaN, left out)
+    xy_pf = np.nanmean([polygon_centroid(design_section(p, z_pf + dz)) for dz in (2.0, 4.0, 6.0, 8.0, 10.0)],
+                       axis=0)
+    cy = -p.plateau_posterior_offset_mm
+    top = _first_exit(p, np.array([[0.0, cy, L - 10.0]]), np.array([[0.0, 0.0, 1.0]]), 30.0)[0]
+    z_pc = min(L - 10.0 + top, z_cap) if np.isfinite(top) else z_cap
+    axis = np.array([0.0, cy, z_pc]) - np.array([xy_pf[0], xy_pf[1], z_pf])
+    length = float(np.linalg.norm(axis))
+    lean = float(np.degrees(np.arctan2(-axis[1], axis[2])))
+    m: dict[str, float] = {"length_mm": length}
+
+    # the highest point of the plateau (the eminence, or a sloped condyle's anterior rim)
+    gx, gy = np.meshgrid(np.arange(-0.5 * p.plateau_width_mm, 0.5 * p.plateau_width_mm, 1.0),
+                         np.arange(cy - 0.5 * p.plateau_depth_mm, cy + 0.5 * p.plateau_depth_mm, 1.0))
+    start = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, L - 10.0)])
+    rise = _first_exit(p, start, np.tile([0.0, 0.0, 1.0], (len(start), 1)), 30.0)
+    m["max_length_mm"] = min(L - 10.0 + float(np.nanmax(rise)), z_cap) + p.malleolus_length_mm
+
+    plateau = design_section(p, z_pf + length - s.plateau_section_depth_mm, (0.0, cy))
+    x_lo, x_hi = plateau[:, 0].min(), plateau[:, 0].max()
+    width = x_hi - x_lo
+    m["plateau_width_mm"] = float(width)
+    condyles = {"medial": x_lo + s.condyle_share * width, "lateral": x_hi - s.condyle_share * width}
+    for side, x in condyles.items():
+        m[f"{side}_plateau_depth_mm"] = float(np.ptp(line_crossings(plateau, 0, x)))
+    m["medial_posterior_slope_deg"] = p.medial_slope_deg - lean
+    m["lateral_posterior_slope_deg"] = p.lateral_slope_deg - lean
+
+    # the malleolus's centre turns with the distal end (the torsion)
+    turn = np.radians(p.torsion_deg)
+    centre = np.array([-0.5 * p.distal_width_mm + 7.0, 2.0])
+    centre = np.array([centre[0] * np.cos(turn) + centre[1] * np.sin(turn),
+                       -centre[0] * np.sin(turn) + centre[1] * np.cos(turn)])
+    malleolus = polygon_centroid(design_section(p, z_pf - s.malleolus_depth_mm, (centre[0], centre[1])))
+    ankle = (xy_pf - malleolus) / np.linalg.norm(xy_pf - malleolus)
+    across = np.array([-ankle[1], ankle[0]])
+    reach = 0.5 * max(p.distal_width_mm, p.distal_depth_mm) + 5.0
+    m["plafond_width_mm"] = _articular_extent(_vertical_profile(p, xy_pf, ankle, z_pf + 10.0, reach), z_pf, s)
+    m["plafond_depth_mm"] = _articular_extent(_vertical_profile(p, xy_pf, across, z_pf + 10.0, reach), z_pf, s)
+    # the widest distal sections lie above the dome (the malleolus bulges most at its centre, 4 mm up)
+    levels = np.arange(_PLAFOND_DOME_MM + 1.0, z_pf + s.distal_zone_mm, 1.0)
+    distal = np.vstack([design_section(p, z) for z in levels])
+    m["bimalleolar_width_mm"] = float(np.ptp(distal @ ankle))
+
+    for pct in DESIGN_SHAFT_LEVELS:
+        loop = design_section(p, z_pf + pct / 100.0 * length, (0.0, 0.0))
+        m[f"shaft_ml_{pct}_mm"] = float(np.ptp(loop[:, 0]))
+        m[f"shaft_ap_{pct}_mm"] = float(np.ptp(loop[:, 1]))
+
+    a, b = hull_edge_across(plateau, 0, 0.5 * (condyles["medial"] + condyles["lateral"]), -1.0)
+    proximal = (b - a) * np.sign(b[0] - a[0])
+    distal_axis = xy_pf - malleolus
+    m["torsion_deg"] = float(np.degrees(np.arctan2(proximal[1], proximal[0])
+                                        - np.arctan2(distal_axis[1], distal_axis[0])))
+    return m

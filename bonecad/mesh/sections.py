@@ -145,3 +145,40 @@ def section_stack(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, a
         sec = stack.at(float(level))
         areas[i], centroids[i] = sec.area, sec.centroid
     return areas, centroids
+
+
+def line_crossings(loop: np.ndarray, axis: int, value: float) -> np.ndarray:
+    """Sorted values of the other coordinate where a closed (p, 2) polygon crosses the line
+    ``loop[:, axis] == value`` (mm); empty when the line misses it."""
+    a = np.asarray(loop, dtype=np.float64)
+    b = np.roll(a, -1, axis=0)
+    other = 1 - axis
+    da, db = a[:, axis] - value, b[:, axis] - value
+    crossing = (da <= 0) != (db <= 0)
+    t = da[crossing] / (da[crossing] - db[crossing])
+    return np.sort(a[crossing, other] + t * (b[crossing, other] - a[crossing, other]))
+
+
+def polygon_centroid(loop: np.ndarray) -> np.ndarray:
+    """Area centroid (2,) of a closed (p, 2) polygon (mm)."""
+    a = np.asarray(loop, dtype=np.float64)
+    b = np.roll(a, -1, axis=0)
+    cross = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
+    return ((a + b) * cross[:, None]).sum(axis=0) / (3.0 * cross.sum())
+
+
+def hull_edge_across(points: np.ndarray, axis: int, value: float, side: float) -> np.ndarray:
+    """The (2, 2) end points of the convex hull edge of (n, 2) points that the line
+    ``points[:, axis] == value`` crosses on the hull's ``side`` (+1: where the other coordinate is
+    largest, -1: smallest): the line tangent to the points from that side across ``value``."""
+    from scipy.spatial import ConvexHull
+
+    pts = np.asarray(points, dtype=np.float64)
+    hull = pts[ConvexHull(pts).vertices]  # counter-clockwise
+    nxt = np.roll(hull, -1, axis=0)
+    da, db = hull[:, axis] - value, nxt[:, axis] - value
+    crossing = np.flatnonzero((da <= 0) != (db <= 0))
+    t = da[crossing] / (da[crossing] - db[crossing])
+    other = hull[crossing, 1 - axis] + t * (nxt[crossing, 1 - axis] - hull[crossing, 1 - axis])
+    i = crossing[np.argmax(side * other)]
+    return np.stack([hull[i], nxt[i]])

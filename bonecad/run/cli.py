@@ -98,6 +98,16 @@ def build_parser() -> argparse.ArgumentParser:
                        "deviation, repairs), curves.png and frame.json into --out.")
     _add_stage(p)
 
+    p = sub.add_parser("measure", help="the tibia's morphometric parameters (lengths, widths, slopes, torsion)",
+                       description="Measure the standard morphometric parameters of a tibia in its anatomical "
+                       "frame (lengths, plateau and plafond sizes, posterior slopes, shaft diameters at 20-80 %% of "
+                       "the length, tibial torsion; the README lists the definitions) and print them as a table; "
+                       "--out writes them as JSON or as one CSV row.")
+    p.add_argument("input", type=Path, help="mesh file (STL, OBJ, PLY, OFF) or CT volume (DICOM folder, .nii, "
+                   ".nii.gz, .nrrd, .mha)")
+    p.add_argument("--out", type=Path, help="file to write: .json or .csv")
+    _add_common(p)
+
     p = sub.add_parser("reconstruct", help="mesh or CT -> NURBS and T-spline CAD models, analysis, report",
                        description="The whole pipeline: frame, contour curves, the NURBS baseline and/or the "
                        "T-spline model, their deviation/continuity/zebra analysis. Writes nurbs.step/.iges, "
@@ -177,6 +187,15 @@ def _print_inspect(summary: dict) -> None:
         print(f"  {r}")
 
 
+def _print_measurements(doc) -> None:
+    from bonecad.anatomy.morphometry import PARAMETERS
+
+    values = doc.measurements.values()
+    print(f"{doc.input_file}: {doc.measurements.side} tibia (measured as a right one in its anatomical frame)")
+    for name, unit, _ in PARAMETERS:
+        print(f"  {name:<30} {values[name]:>8.1f} {unit}")
+
+
 def _print_result(result) -> None:
     if result.contours is not None:
         for name, summary in result.contours.summary().items():
@@ -251,6 +270,11 @@ def _run(args: argparse.Namespace) -> None:
                                           progress=progress)
         _print_result(result)
         print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
+    elif args.command == "measure":
+        doc = pipeline.run_measure(args.input, settings, units=args.units, out=args.out)
+        _print_measurements(doc)
+        if args.out is not None:
+            print(f"written to {args.out}")
     elif args.command == "patch":
         region = pipeline.patch_region(settings, args.region, args.height, args.angle)
         doc = pipeline.run_patch(args.source, args.out, settings, region, mesh=args.mesh, units=args.units)

@@ -30,10 +30,12 @@ import numpy as np
 
 from bonecad.analysis.model import ModelReport, model_continuity, model_deviation, tessellate_model
 from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
+from bonecad.anatomy.morphometry import measure_tibia
 from bonecad.contours.curves import ContourSet, bone_coordinates, contour_curves
 from bonecad.errors import InputError
 from bonecad.export.registry import export
 from bonecad.export.documents import FrameDocument
+from bonecad.export.measurements import MeasurementsDocument
 from bonecad.export.report import ReportDocument, Tolerances
 from bonecad.export.viewer import ViewMesh, input_view, model_view, viewer_html
 from bonecad.mesh.bone_mesh import BoneMesh
@@ -172,6 +174,22 @@ def inspect(path: str | Path, settings: Settings, *, units: Units = "auto") -> d
     return summary
 
 
+def run_measure(source: str | Path, settings: Settings, *, units: Units = "auto", out: Path | None = None
+                ) -> MeasurementsDocument:
+    """``bonecad measure``: the tibia's morphometric parameters (``bonecad.anatomy.morphometry``) from a
+    mesh or a CT volume, written to ``out`` (.json or .csv) when given."""
+    from bonecad.export.measurements import check_measurements_path, write_measurements
+
+    if out is not None:
+        check_measurements_path(out)  # before the work
+    bone = load_input(source, settings, units=units)
+    frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+    doc = MeasurementsDocument(str(source), measure_tibia(bone, frame, settings.morphometry))
+    if out is not None:
+        write_measurements(doc, out)
+    return doc
+
+
 def reconstruct_bone(
     bone: BoneMesh,
     out_dir: str | Path,
@@ -282,12 +300,15 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
             views_in_order = (input_view(bone.work.vertices, bone.work.faces, deviations,
                                          settings.analysis.view_max_triangles),
                               *(views[m] for m in shown))
+        with timings.stage("morphometry"):
+            measured = measure_tibia(bone, frame, settings.morphometry).values()
         with timings.stage("report"):
             doc = ReportDocument(input_summary={**bone.summary(), "side": frame.side}, frame=frame.as_dict(),
                                  models=tuple(reports[m] for m in MODELS if m in reports),
                                  timings_s={**timings.seconds, "total (wall)": timings.wall_s()},
                                  tolerances=Tolerances.of(settings.tspline), contours=contours,
-                                 viewer=viewer_html(list(views_in_order), frame.as_dict()))
+                                 viewer=viewer_html(list(views_in_order), frame.as_dict()),
+                                 morphometry=measured)
             export("report", doc, stage_dir)
     return Reconstruction(bone=bone, frame=frame, contours=contours,
                           models={m: built[m] for m in MODELS if m in built},
