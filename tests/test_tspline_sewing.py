@@ -158,6 +158,7 @@ def test_refined_tube_sews_into_a_valid_closed_solid(phantom_fitted, spots, roun
 
     from bonecad.occ.brep import faces, free_edge_count, is_valid, volume_mm3
     from bonecad.occ.tspline import tensor_product_blocks
+    from bonecad.splines.tspline.tensor import panel_plan
     from bonecad.tspline_model.model import _occ_shape, apex_caps
 
     model = phantom_fitted.model
@@ -174,7 +175,12 @@ def test_refined_tube_sews_into_a_valid_closed_solid(phantom_fitted, spots, roun
     assert shells == 1
     assert free_edge_count(solid) == 0
     patches = [tube, *(c.tspline for c in caps)]
-    assert len(faces(solid)) == len(face_names) == sum(len(tensor_product_blocks(p)) for p in patches)
+    par, st = model.parameterisation, SETTINGS.tspline
+    assert st.face_layout == "panels"  # the shipped layout: the tube's panels, the caps' blocks
+    tube_faces = len(panel_plan(tube, t_cuts=(par.t_distal, par.t_proximal), face_cost=st.panel_face_cost,
+                                t_step=st.panel_t_step))
+    assert len(faces(solid)) == len(face_names) == tube_faces + sum(len(tensor_product_blocks(c.tspline))
+                                                                    for c in caps)
     # the solid encloses what the T-spline surfaces enclose (all faces there, all facing out)
     volume = volume_mm3(solid, 1e-9)  # at the default 1e-6 it was up to 2.6e-6 off, at 1e-8 2.4e-7
     assert volume > 0

@@ -444,8 +444,11 @@ def insert_segments(ts: TSpline, segments: Sequence[KnotSegment], *, tol: float 
     vals = [v for c in coefs for v in c.values()]
     n_new = len(final.anchors)
     matrix = sp.csr_matrix((vals, (rows, cols)), shape=(n_new, ts.n_control))
-    pw = matrix @ np.hstack([ts.control_points * ts.weights[:, None], ts.weights[:, None]])
-    new = TSpline(final, pw[:, :3] / pw[:, 3:], pw[:, 3])
+    if ts.polynomial:  # the rows sum to 1: a polynomial T-spline stays one (weights exactly 1, not 1 - 1e-16)
+        new = TSpline(final, matrix @ ts.control_points, np.ones(n_new))
+    else:
+        pw = matrix @ np.hstack([ts.control_points * ts.weights[:, None], ts.weights[:, None]])
+        new = TSpline(final, pw[:, :3] / pw[:, 3:], pw[:, 3])
     return Refinement(new, matrix, n_new - ts.n_control, requested)
 
 
