@@ -220,12 +220,12 @@ def render_tessellation_normals(
 ) -> list[Raster]:
     """Views of a tessellated shape with exact surface normals at the pixel centres (for zebra).
 
-    The tessellation is splatted with each sample's face, (u, v) and position;
-    per visible pixel (not per sample: about half the samples end up hidden)
-    one Newton step on the exact surface then moves (u, v) from the sample to
-    the point seen at the pixel's centre, where the normal is evaluated: the
-    normals do not jitter with the samples' random places inside the pixels,
-    so stripe edges stay smooth. values = (face index, u, v).
+    The tessellation is splatted with each sample's face and triangle; per
+    visible pixel (not per sample: about half the samples end up hidden) the
+    (u, v) of the pixel's centre is interpolated on that triangle and the
+    exact normal evaluated there: the normals do not jitter with the samples'
+    random places inside the pixels, so stripe edges stay smooth.
+    values = (face index, u, v, triangle index).
     """
     frames = [screen_axes(frame, v) for v in views]
     bounds = [_view_bounds(tess.vertices, a) for a in frames]
@@ -236,7 +236,7 @@ def render_tessellation_normals(
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)  # kept where no surface
     uv = np.einsum("nk,nkj->nj", samples.barycentric, tess.uv[tri])
     face = tess.triangle_face[samples.triangle]
-    values = np.column_stack([face.astype(float), uv])
+    values = np.column_stack([face.astype(float), uv, samples.triangle.astype(float)])
     rasters = [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
     for raster, axes in zip(rasters, frames):
         _exact_normals(raster, axes, tess)
@@ -244,32 +244,34 @@ def render_tessellation_normals(
 
 
 def _exact_normals(raster: Raster, axes: np.ndarray, tess: Tessellation) -> None:
-    """Replace the raster's normals (and (u, v)) by the exact surface's at the pixel centres, in place."""
+    """Replace the raster's normals and (u, v) by the exact surface's at the pixel centres, in place.
+
+    The centre's (u, v): its barycentric coordinates in the screen projection of the sample's triangle
+    applied to the triangle's nodes' (u, v) (the triangle lies within the chord error, 0.05 mm, of the
+    surface); a triangle seen edge-on, or a centre more than a triangle away, keeps the sample's (u, v).
+    """
     sset = tess.packed_surfaces
     rows, cols = np.nonzero(raster.mask)
     pix_face = raster.values[rows, cols, 0].astype(np.int64)
     has = np.flatnonzero(sset.group[pix_face] >= 0)
     rows, cols, f = rows[has], cols[has], pix_face[has]
-    u, v = raster.values[rows, cols, 1], raster.values[rows, cols, 2]
+    corners = tess.triangles[raster.values[rows, cols, 3].astype(np.int64)]
     left, right, bottom, top = raster.extent_mm
     h, w = raster.mask.shape
     centre = np.column_stack([left + (cols + 0.5) * (right - left) / w, top - (rows + 0.5) * (top - bottom) / h])
-    first = sset.evaluate(f, u, v, order=1)
-    # screen (right, up) = J (du, dv): solve for the parameter step to the pixel centre
-    ju, jv = first.du @ axes[:2].T, first.dv @ axes[:2].T
-    det = ju[:, 0] * jv[:, 1] - jv[:, 0] * ju[:, 1]
-    miss = centre - first.points @ axes[:2].T
-    ok = np.abs(det) > 1e-9 * np.maximum(np.sum(ju**2, axis=1) * np.sum(jv**2, axis=1), 1e-300) ** 0.5
-    safe = np.where(ok, det, 1.0)
-    step_u = np.where(ok, (miss[:, 0] * jv[:, 1] - jv[:, 0] * miss[:, 1]) / safe, 0.0)
-    step_v = np.where(ok, (ju[:, 0] * miss[:, 1] - miss[:, 0] * ju[:, 1]) / safe, 0.0)
-    # a step of more than a few pixels means a grazing view or a fold: keep the sample's point there
-    pixel_mm = (top - bottom) / h
-    move = np.hypot(*(step_u[:, None] * ju + step_v[:, None] * jv).T)
-    small = move <= 3.0 * pixel_mm
+    p = tess.vertices[corners] @ axes[:2].T  # (k, 3, 2) screen mm
+    e1, e2, d = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], centre - p[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    scale = np.sum(e1**2, axis=1) + np.sum(e2**2, axis=1)
+    safe = np.where(np.abs(det) > 1e-6 * scale, det, np.inf)
+    b1 = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / safe
+    b2 = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / safe
+    bary = np.column_stack([1.0 - b1 - b2, b1, b2])
+    near = np.isfinite(safe) & (bary.min(axis=1) > -1.0) & (bary.max(axis=1) < 2.0)
+    uv = np.einsum("nk,nkj->nj", bary, tess.uv[corners])
     lo_u, hi_u, lo_v, hi_v = sset.bounds[f].T
-    u = np.where(small, np.clip(u + step_u, lo_u, hi_u), u)
-    v = np.where(small, np.clip(v + step_v, lo_v, hi_v), v)
+    u = np.where(near, np.clip(uv[:, 0], lo_u, hi_u), raster.values[rows, cols, 1])
+    v = np.where(near, np.clip(uv[:, 1], lo_v, hi_v), raster.values[rows, cols, 2])
     sample = sset.evaluate(f, u, v, order=1)
     n = np.cross(sample.du, sample.dv)
     size = np.linalg.norm(n, axis=1, keepdims=True)
@@ -349,8 +351,9 @@ def panel_figure(rasters: list[Raster], height_px: int, extra_width_px: int = 0)
 
 
 def save_figure(fig, path: str | Path) -> Path:
-    """The figure as a lossless PNG without alpha: greyscale when it has no colour (a zebra figure),
-    else RGB (about 2.5x and 1.4x smaller than matplotlib's RGBA; the report embeds them)."""
+    """The figure as a PNG without alpha: greyscale when it has no colour (a zebra figure: lossless,
+    2.5x smaller than matplotlib's RGBA), else a palette of 256 colours (octree; no visible change on a
+    shaded deviation map, which shrinks 2.8x: 1.6 to 0.57 MB). The report embeds them."""
     import io
 
     from PIL import Image
@@ -361,6 +364,8 @@ def save_figure(fig, path: str | Path) -> Path:
     rgb = np.asarray(image)
     if (rgb[..., 0] == rgb[..., 1]).all() and (rgb[..., 1] == rgb[..., 2]).all():
         image = image.convert("L")
+    else:
+        image = image.quantize(256, method=Image.Quantize.FASTOCTREE)
     path = Path(path)
     with staged_file(path) as tmp:
         image.save(tmp, format="png")

@@ -343,8 +343,8 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     tess = tessellate_model(model.shape, settings.analysis)
     side = ex.submit(zebra_and_continuity, name, model, tess, out_dir, view_frame, settings)
-    view = ex.submit(model_view, name, tess.vertices, tess.triangles, bone.work.vertices, bone.work.faces,
-                     settings.analysis.view_max_triangles)
+    view = ex.submit(model_view, name, tess.vertices, tess.triangles, tess.triangle_face, bone.work.vertices,
+                     bone.work.faces, settings.analysis.view_max_triangles)
     deviation = model_deviation(tess, bone, frame, settings.analysis)
     shown = bone.work  # the colour map draws the working copy (its vertices' deviations)
     colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", shown.vertices, shown.faces,
