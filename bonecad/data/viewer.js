@@ -70,21 +70,13 @@
     for (const k in m.deviation) deviation[k] = decode(m.deviation[k], Float32Array);
     const material = new THREE.MeshLambertMaterial({vertexColors: true, ...surface});
     const mesh = new THREE.Mesh(geometry, material);
-    const seamPositions = decode(m.seams, Float32Array);
-    if (seamPositions.length) {
-      const seamGeometry = new THREE.BufferGeometry();
-      seamGeometry.setAttribute('position', new THREE.BufferAttribute(seamPositions, 3));
-      const seams = new THREE.LineSegments(seamGeometry, new THREE.LineBasicMaterial({color: 0x111111}));
-      seams.name = 'seams';
-      mesh.add(seams);
-    }
     geometry.computeBoundingBox();
     const b = geometry.boundingBox;
     const corners = [];
     for (let c = 0; c < 8; c++) corners.push(new THREE.Vector3(c & 1 ? b.max.x : b.min.x,
       c & 2 ? b.max.y : b.min.y, c & 4 ? b.max.z : b.min.z).dot(right));
     widest = Math.max(widest, Math.max(...corners) - Math.min(...corners));
-    meshes.push({mesh: mesh, deviation: deviation, colours: material});
+    meshes.push({mesh: mesh, deviation: deviation, colours: material, seams: m.seams});
     scene.add(mesh);
   });
   meshes.forEach((m, i) => {
@@ -151,8 +143,19 @@
     planes.forEach((p) => { p.visible = e.target.checked; }); render();
   });
   const showSeams = document.getElementById('show-seams');
-  const reseam = () => {
-    meshes.forEach((m) => { const s = m.mesh.getObjectByName('seams'); if (s) s.visible = showSeams.checked; });
+  const reseam = () => {  // the seams' lines are built when first shown (they are off at load)
+    meshes.forEach((m) => {
+      if (showSeams.checked && m.seams) {
+        const geometry = new THREE.BufferGeometry();
+        geometry.setAttribute('position', new THREE.BufferAttribute(decode(m.seams, Float32Array), 3));
+        const lines = new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({color: 0x111111}));
+        lines.name = 'seams';
+        m.mesh.add(lines);
+        m.seams = null;
+      }
+      const lines = m.mesh.getObjectByName('seams');
+      if (lines) lines.visible = showSeams.checked;
+    });
     render();
   };
   showSeams.addEventListener('change', reseam);

@@ -212,9 +212,9 @@ def _continuity_tables(cont: dict[str, Any]) -> str:
 #: what each figure shows (by its name; ``{model}`` and ``{tolerance}`` filled in), in the page's order
 CAPTIONS = {
     "histograms": "Share of the surface per 0.1 mm band of signed deviation (mesh → CAD; + = mesh outside the "
-                  "model), the models overlaid, for the whole bone and each region; dashed: the run's "
-                  "±{tolerance} mm tolerance. A taller, narrower peak at 0 is a closer fit; the outermost bands "
-                  "collect everything beyond the axis.",
+                  "model), the models overlaid, for the whole bone and each region, on a linear scale (the peak) "
+                  "above a logarithmic one (the tails); dashed: the run's ±{tolerance} mm tolerance. A taller, "
+                  "narrower peak at 0 is a closer fit; the outermost bands collect everything beyond the axis.",
     "deviation": "{model}: the input mesh coloured by its signed distance to the {model} model (red: mesh "
                  "outside the model, blue: inside; colour bar in mm), seen from the front, back, medial and "
                  "lateral sides.",

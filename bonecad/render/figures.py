@@ -421,18 +421,19 @@ def deviation_map_png(
 
 def histograms_png(path: str | Path, models: dict[str, dict[str, Histogram]], *, tolerance_mm: float | None = None,
                    title: str = "Share of the surface per deviation band") -> Path:
-    """PNG of the models' banded deviation histograms overlaid, one panel per region.
+    """PNG of the models' banded deviation histograms overlaid, one column per region: the shares in
+    percent on a linear axis (the peak) above a logarithmic one (the tails against the tolerance).
 
     ``models``: model name -> region name -> Histogram (the same regions and
-    bands in every model); shares in percent, under- and overflow as the
-    outermost bands, labelled; dashed lines at +-``tolerance_mm``.
+    bands in every model); under- and overflow as the outermost bands,
+    labelled; dashed lines at +-``tolerance_mm``.
     """
     if not models or not all(models.values()):
         raise ValueError("no histograms to plot")
     regions = list(next(iter(models.values())))
-    fig = Figure(figsize=(4.2 * len(regions) + 1.0, 5.0), dpi=100)
-    axes = np.atleast_1d(fig.subplots(1, len(regions), sharey=True))
-    for ax, region in zip(axes, regions):
+    fig = Figure(figsize=(4.2 * len(regions) + 1.0, 8.0), dpi=100)
+    grid = fig.subplots(2, len(regions), sharey="row", sharex=True, squeeze=False)
+    for ax, region in [*zip(grid[0], regions), *zip(grid[1], regions)]:
         for (name, hists), colour in zip(models.items(), ("tab:blue", "tab:orange", "tab:green")):
             h = hists[region]
             e = h.edges_mm
@@ -445,15 +446,20 @@ def histograms_png(path: str | Path, models: dict[str, dict[str, Histogram]], *,
                 ax.axvline(x, color="k", ls="--", lw=1.0)
         ax.set_xticks([e[0] - w / 2, e[0] / 2, 0.0, e[-1] / 2, e[-1] + w / 2])
         ax.set_xticklabels([f"< {e[0]:g}", f"{e[0] / 2:g}", "0", f"{e[-1] / 2:g}", f">= {e[-1]:g}"])
-        ax.set_title(region)
-        ax.set_xlabel(f"signed deviation, mm ({w:g} mm bands)")
         ax.grid(alpha=0.3)
-    axes[0].set_ylabel("share of surface, %")
-    handles, labels = axes[0].get_legend_handles_labels()
+    for ax, region in zip(grid[0], regions):
+        ax.set_title(region)
+    for ax in grid[1]:
+        ax.set_yscale("log")
+        ax.set_ylim(bottom=0.01)
+        ax.set_xlabel(f"signed deviation, mm ({w:g} mm bands)")
+    grid[0, 0].set_ylabel("share of surface, %")
+    grid[1, 0].set_ylabel("share of surface, % (log)")
+    handles, labels = grid[0, 0].get_legend_handles_labels()
     if tolerance_mm is not None:
         handles.append(Line2D([], [], color="k", ls="--"))
         labels.append(f"tolerance +-{tolerance_mm:g} mm")
-    axes[-1].legend(handles, labels)
+    grid[0, 0].legend(handles, labels, loc="upper left", fontsize=9)
     fig.suptitle(title + " (+ = mesh outside the CAD model)")
     fig.tight_layout()
     return save_figure(fig, path)
