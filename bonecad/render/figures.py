@@ -356,10 +356,11 @@ def panel_figure(rasters: list[Raster], height_px: int, extra_width_px: int = 0)
     return fig, list(np.atleast_1d(axes))
 
 
-def save_figure(fig, path: str | Path) -> Path:
-    """The figure as a PNG without alpha: greyscale when it has no colour (a zebra figure: lossless,
-    2.5x smaller than matplotlib's RGBA), else a palette of 256 colours (octree; no visible change on a
-    shaded deviation map, which shrinks 2.8x: 1.6 to 0.57 MB). The report embeds them."""
+def save_figure(fig, path: str | Path, *, palette: bool = False) -> Path:
+    """The figure as a PNG without alpha (the report embeds them): greyscale when it has no colour (a
+    zebra figure: lossless, 2.5x smaller than matplotlib's RGBA), else RGB, or with ``palette`` 256
+    colours (octree; no visible change on a shaded deviation map, 2.8x smaller: 1.6 to 0.57 MB; it
+    would band a grey-shaded figure such as the curve plan)."""
     import io
 
     from PIL import Image
@@ -370,7 +371,7 @@ def save_figure(fig, path: str | Path) -> Path:
     rgb = np.asarray(image)
     if (rgb[..., 0] == rgb[..., 1]).all() and (rgb[..., 1] == rgb[..., 2]).all():
         image = image.convert("L")
-    else:
+    elif palette:
         image = image.quantize(256, method=Image.Quantize.FASTOCTREE)
     path = Path(path)
     with staged_file(path) as tmp:
@@ -422,7 +423,7 @@ def deviation_map_png(
     bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, extend="both", shrink=0.7, fraction=0.03)
     bar.set_label("signed deviation, mm (+ = mesh outside the CAD model)")
     fig.suptitle(title)
-    return save_figure(fig, path)
+    return save_figure(fig, path, palette=True)
 
 
 def histograms_png(path: str | Path, models: dict[str, dict[str, Histogram]], *, tolerance_mm: float | None = None,
