@@ -113,7 +113,7 @@ def analyse_shape(name: str, shape, bone, frame, out_dir):
     this process: tessellation, deviation both ways, the three PNGs, seam and knot continuity (no face
     names). Returns the deviation with the tessellation's time among its steps."""
     from bonecad.analysis.model import model_continuity, model_deviation, tessellate_model
-    from bonecad.render.figures import deviation_map_png, histogram_png, zebra_png
+    from bonecad.render.figures import deviation_map_png, histograms_png, zebra_png
 
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     t0 = time.perf_counter()
@@ -124,9 +124,9 @@ def analyse_shape(name: str, shape, bone, frame, out_dir):
     deviation = model_deviation(tess, bone, frame, SETTINGS.analysis)
     deviation_map_png(out_dir / f"{name}_deviation.png", bone.vertices, bone.faces, deviation.vertex_deviation_mm,
                       view_frame, title=f"{name}: deviation of the mesh from the CAD model, mm")
-    histogram_png(out_dir / f"{name}_histogram.png",
-                  {"whole bone": deviation.mesh_to_cad.histogram, **deviation.mesh_to_cad.region_histograms},
-                  title=f"{name}: share of surface per deviation band")
+    histograms_png(out_dir / f"{name}_histograms.png",
+                   {name: {"whole bone": deviation.mesh_to_cad.histogram, **deviation.mesh_to_cad.region_histograms}},
+                   title=f"{name}: share of surface per deviation band")
     return replace(deviation, timings_s={"tessellate": t_tess, **deviation.timings_s})
 
 

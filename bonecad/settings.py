@@ -153,7 +153,7 @@ class TSplineSettings:
 class AnalysisSettings:
     """Deviation histogram bands (mm), samples per direction, tessellation (mm, rad, relative),
     seam classes (gap mm, angle degrees, relative curvature jump, flat radius mm), triangles per mesh
-    in the report's 3-D view."""
+    in the report's 3-D view, height of the figures' images (px)."""
 
     band_width_mm: float
     band_limit_mm: float
@@ -169,6 +169,7 @@ class AnalysisSettings:
     continuity_curvature_jump: float
     continuity_curvature_radius_ref_mm: float
     view_max_triangles: int
+    figure_height_px: int
 
     def __post_init__(self) -> None:
         width, limit = self.band_width_mm, self.band_limit_mm

@@ -140,19 +140,39 @@ def test_zebra_stripes_break_at_a_tangent_break_only():
     assert abs(jump_c2) < 0.03
 
 
-def test_zebra_png_two_views(tmp_path):
+def test_zebra_png_four_views(tmp_path):
+    """Four panels from the four sides; a zebra figure has no colour, so it is written greyscale."""
+    from PIL import Image
+
     shape, _ = two_patches(2)
     path = zebra_png(tmp_path / "zebra.png", tessellate(shape, TESSELLATION), np.eye(3), height_px=200)
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
-    assert VIEWS == ("anterior", "posterior")
+    assert VIEWS == ("anterior", "posterior", "medial", "lateral")
+    image = Image.open(path)
+    assert image.mode == "L" and image.size[1] >= 200
+
+
+def test_zebra_stripes_fade_to_grey_where_denser_than_the_pixels():
+    """A pixel spanning many stripes shows their mean (mid grey), not one of them (aliasing)."""
+    from bonecad.render.figures import Raster
+
+    h, w = 4, 64
+    angle = np.linspace(0.0, 0.5 * np.pi, w)  # normals tilting across the row: the phase grows along it
+    normal = np.zeros((h, w, 3))
+    normal[..., 1], normal[..., 2] = np.sin(angle), np.cos(angle)
+    raster = Raster(np.ones((h, w), bool), np.zeros((h, w)), np.zeros((h, w, 1)), normal, (0.0, 64.0, 0.0, 4.0))
+    coarse = zebra_image(raster, stripes=4)[..., 0] / (0.55 + 0.45 * normal[..., 2])
+    fine = zebra_image(raster, stripes=400)[..., 0] / (0.55 + 0.45 * normal[..., 2])
+    assert coarse.min() < 0.1 and coarse.max() > 0.9  # resolved: dark and light bands
+    assert np.all(np.abs(fine[:, 1:-1] - (0.08 + 0.87 / 2)) < 0.1)  # ~6 stripes per pixel: their mean
 
 
 def test_frame_must_be_a_rotation():
     with pytest.raises(ValueError, match="orthonormal"):
         screen_axes(np.diag([1.0, 2.0, 1.0]), "anterior")
     with pytest.raises(ValueError, match="view must be"):
-        screen_axes(np.eye(3), "lateral")
+        screen_axes(np.eye(3), "superior")
 
 
 @pytest.mark.parametrize("kind", ["rational sphere", "bicubic with a double knot"])

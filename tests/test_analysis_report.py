@@ -14,7 +14,7 @@ import pytest
 from bonecad.analysis.continuity import knot_continuity, seam_continuity
 from bonecad.analysis.deviation import shape_deviation
 from tests.goldens import UPDATE_ENV, GoldenMismatch, assert_histogram_matches, compare_histogram
-from bonecad.render.figures import deviation_map_png, histogram_png
+from bonecad.render.figures import deviation_map_png, histograms_png
 from bonecad.analysis.model import ModelReport
 from bonecad.export.registry import export
 from bonecad.export.report import SCHEMA, AT_NOISE, MET, NOT_MET, ReportDocument, Tolerances, verdict
@@ -101,8 +101,9 @@ def test_report_json_and_html(sphere, tmp_path):
     assert np.abs(dev.vertex_deviation_mm).max() <= 0.3 + tess.chord_error_mm.max() + 1e-6
     frame = np.eye(3)
     cmap = deviation_map_png(tmp_path / "deviation_nurbs.png", v, f, dev.vertex_deviation_mm, frame, height_px=200)
-    hist = histogram_png(tmp_path / "histogram_nurbs.png",
-                         {"overall": dev.mesh_to_cad.histogram, **dev.mesh_to_cad.region_histograms})
+    hist = histograms_png(tmp_path / "histogram_nurbs.png",
+                          {"nurbs": {"overall": dev.mesh_to_cad.histogram, **dev.mesh_to_cad.region_histograms}},
+                          tolerance_mm=0.25)
     models = [
         ModelReport("nurbs", {"faces": 1, "control_points": 45}, dev, seam_continuity(shape, tolerances=CONTINUITY),
                     knot_continuity(shape), {"deviation map": cmap, "histogram": hist}),
@@ -235,7 +236,9 @@ def test_3d_view_is_offline_decimated_and_signed():
     assert 1500 <= len(f) <= 2000
     outer = trimesh.creation.icosphere(subdivisions=3, radius=11.0)
     assert deviation_at(outer.vertices, bone.vertices, bone.faces) == pytest.approx(-1.0, abs=0.02)
-    model = model_view("tspline", outer.vertices, outer.faces, bone.vertices, bone.faces, 500)
+    halves = (outer.triangles_center[:, 2] > 0).astype(int)  # two "faces": the seam is the equator
+    model = model_view("tspline", outer.vertices, outer.faces, halves, bone.vertices, bone.faces, 500)
+    assert len(model.seams) > 10 and np.abs(model.seams[..., 2]).max() < 2.0  # within a triangle of z = 0
     mesh = input_view(bone.vertices, bone.faces, {"tspline": np.full(len(bone.vertices), 0.5)}, 3000)
     assert len(model.triangles) <= 500 and np.allclose(mesh.deviation_mm["tspline"], 0.5)
     page = viewer_html([mesh, model], {"bone_frame": {"origin": [0, 0, 0], "lateral": [1, 0, 0],

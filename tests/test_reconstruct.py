@@ -9,7 +9,7 @@ from bonecad.anatomy.morphometry import PARAMETER_NAMES
 from bonecad.run.cli import main
 
 CONTRACT = {"nurbs.step", "nurbs.iges", "curves.step", "curves.iges", "curves.json", "frame.json", "report.json",
-            "report.html", "nurbs_deviation.png", "nurbs_histogram.png", "nurbs_zebra.png", "curves.png"}
+            "report.html", "nurbs_deviation.png", "histograms.png", "nurbs_zebra.png", "curves.png"}
 
 
 @pytest.fixture(scope="module")

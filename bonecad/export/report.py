@@ -21,9 +21,10 @@ report.json schema (``"schema": "bonecad.report/1"``)::
             "unrefined_bound_mm", "timings_s"},
           "continuity": {"summary": {...}, "edges": [...]} or null,   # SeamContinuity.to_dict()
           "knots": [KnotContinuity.to_dict(), ...] or null,
-          "figures": {name: file name relative to the report}
+          "figures": {name: file name relative to the report}   # "deviation", "zebra"
         }
       },
+      "figures": {name: file name relative to the report},   # the run's: "curves", "histograms"
       "comparison": [ {row}, ... ] or null,  # when models "nurbs" and "tspline" both exist
       "tolerances": {"share", "within_mm", "max_deviation_mm", "rms_mm"} or null,   # the run's [tspline]
       "summary": {NAME: {"verdict": "met" | "not met" | "stopped at the data's noise" | "not measured",
@@ -44,7 +45,7 @@ embedded (base64 PNG).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -232,6 +233,7 @@ def build_report(
     timings_s: dict[str, float],
     tolerances: Tolerances | None = None,
     contours: ContourSet | None = None,
+    figures: dict[str, Path] | None = None,
     out_dir: Path | None = None,
     morphometry: dict[str, float] | None = None,
 ) -> dict[str, Any]:
@@ -255,6 +257,7 @@ def build_report(
             "frame": frame,
             "timings_s": timings_s,
             "models": out_models,
+            "figures": {k: Path(v).name for k, v in (figures or {}).items()},
             "comparison": comparison_rows(models),
             "tolerances": tolerances.to_dict() if tolerances else None,
             "summary": {m.name: model_summary(m, tolerances, out_dir) for m in models},
@@ -268,7 +271,8 @@ def build_report(
 class ReportDocument:
     """What the report holds: the input summary (file, bodies, side), the frame (``as_dict``), one
     ``ModelReport`` per model, the run's stage timings (s), the run's tolerances, the contour curves,
-    and the 3-D view's HTML (``bonecad.export.viewer.viewer_html``; empty: no view)."""
+    the run's own figures (name -> PNG: the curve plan, the overlaid histograms) and the 3-D view's HTML
+    (``bonecad.export.viewer.viewer_html``; empty: no view)."""
 
     input_summary: dict[str, Any]
     frame: dict[str, Any]
@@ -276,18 +280,19 @@ class ReportDocument:
     timings_s: dict[str, float]
     tolerances: Tolerances | None = None
     contours: ContourSet | None = None
+    figures: dict[str, Path] = field(default_factory=dict)
     viewer: str = ""
     morphometry: dict[str, float] | None = None  # the tibia's parameters (``bonecad measure``), mm and degrees
 
     def build(self, out_dir: Path | None = None) -> dict[str, Any]:
         """The report.json content; ``out_dir``: the folder whose model files the summary sizes."""
-        for m in self.models:
-            for fig_name, path in m.figures.items():
+        for owner, figures in [("the run", self.figures), *((f"model '{m.name}'", m.figures) for m in self.models)]:
+            for fig_name, path in figures.items():
                 if not Path(path).is_file():
-                    raise FileNotFoundError(f"figure '{fig_name}' of model '{m.name}' is missing: {path}")
+                    raise FileNotFoundError(f"figure '{fig_name}' of {owner} is missing: {path}")
         return build_report(input_summary=self.input_summary, frame=self.frame, models=list(self.models),
                             timings_s=self.timings_s, tolerances=self.tolerances, contours=self.contours,
-                            out_dir=out_dir, morphometry=self.morphometry)
+                            figures=self.figures, out_dir=out_dir, morphometry=self.morphometry)
 
 
 @exporter("report", "json")
@@ -304,5 +309,6 @@ def report_html(doc: ReportDocument, out_dir: Path) -> Path:
     """report.html: the same for people, summary first, with the 3-D view and every figure embedded."""
     path = out_dir / "report.html"
     with staged_file(path) as tmp:
-        tmp.write_text(render_html(doc.build(out_dir), {m.name: m.figures for m in doc.models}, doc.viewer))
+        tmp.write_text(render_html(doc.build(out_dir), {"": doc.figures, **{m.name: m.figures for m in doc.models}},
+                                   doc.viewer))
     return path

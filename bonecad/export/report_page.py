@@ -1,10 +1,11 @@
 """report.html: the report.json content laid out for people, summary first.
 
 Order: the summary (input, then one card per model with its verdict against the
-run's tolerances), the 3-D view, the NURBS-versus-T-spline table, the contour
-curves, the anatomical frame, each model's details (deviation, regions, seam
-classes per face pair, knots, the model's own figures), the figures, the
-timings. Every table cell holds one number or one short text: nested values are
+run's tolerances), the 3-D view, the NURBS-versus-T-spline table, the figures
+(the overlaid histograms, each model's deviation map and zebra, the curve plan;
+each with a caption saying what it shows), the contour curves, the anatomical
+frame, each model's details (deviation, regions, seam classes per face pair,
+knots, the model's own figures), the timings. Every table cell holds one number or one short text: nested values are
 laid out as their own rows or columns (:func:`cell` refuses a list or a dict).
 """
 from __future__ import annotations
@@ -32,7 +33,7 @@ padding:0.8em 1em;background:#fafafa;flex:1 1 400px;max-width:620px}.card h3{mar
 .verdict{display:inline-block;padding:2px 10px;border-radius:10px;font-weight:bold;color:#fff}
 .met{background:#2e7d32}.missed{background:#c62828}.noise{background:#ef6c00}
 .reason{font-size:0.9em;color:#444;max-width:42em}
-img{max-width:100%;border:1px solid #ddd}figure{margin:0.8em 0}
+img{max-width:100%;border:1px solid #ddd}figure{margin:0.8em 0 1.6em 0}figcaption{max-width:60em;color:#333}
 """
 
 
@@ -208,6 +209,39 @@ def _continuity_tables(cont: dict[str, Any]) -> str:
     return "".join(parts)
 
 
+#: what each figure shows (by its name; ``{model}`` and ``{tolerance}`` filled in), in the page's order
+CAPTIONS = {
+    "histograms": "Share of the surface per 0.1 mm band of signed deviation (mesh → CAD; + = mesh outside the "
+                  "model), the models overlaid, for the whole bone and each region, on a linear scale (the peak) "
+                  "above a logarithmic one (the tails); dashed: the run's ±{tolerance} mm tolerance. A taller, "
+                  "narrower peak at 0 is a closer fit; the outermost bands collect everything beyond the axis.",
+    "deviation": "{model}: the input mesh coloured by its signed distance to the {model} model (red: mesh "
+                 "outside the model, blue: inside; colour bar in mm), seen from the front, back, medial and "
+                 "lateral sides.",
+    "zebra": "{model}: reflection lines (zebra) on the model from the same four sides. Stripes that break or "
+             "jump mark a seam that is not tangent-continuous (G1), kinks a curvature (G2) break; continuous "
+             "smooth stripes mean a smooth surface. Where the stripes get denser than the pixels they fade to "
+             "grey.",
+    "curves": "Curve plan: the contour curves the models are built from, on the input mesh from the front and "
+              "the lateral side (hidden parts faint), coloured by region; dashed: the region boundaries (mm "
+              "above the plafond centre).",
+}
+
+
+def figures_section(figures: dict[str, dict[str, Path]], tolerance_mm: float | None) -> str:
+    """Every figure (``figures``: model, "" for the run's own, -> name -> PNG), grouped by kind in the
+    order of :data:`CAPTIONS` (other names after them), each with its caption."""
+    order = {name: i for i, name in enumerate(CAPTIONS)}
+    items = sorted(((order.get(name, len(order)), model, name, path) for model, named in figures.items()
+                    for name, path in named.items()), key=lambda item: item[0])
+    parts = []
+    for _, model, name, path in items:
+        template = CAPTIONS.get(name, "{model}: " + name if model else name)
+        tolerance = "-" if tolerance_mm is None else f"{tolerance_mm:g}"
+        parts.append(_figure(template.format(model=model, tolerance=tolerance), path))
+    return "".join(parts)
+
+
 def _figure(caption: str, path: Path) -> str:
     data = base64.b64encode(Path(path).read_bytes()).decode("ascii")
     return (f"<figure><img alt='{html.escape(caption)}' src='data:image/png;base64,{data}'>"
@@ -215,8 +249,8 @@ def _figure(caption: str, path: Path) -> str:
 
 
 def render_html(report: dict[str, Any], figures: dict[str, dict[str, Path]], viewer: str = "") -> str:
-    """report.html text from the report.json content; ``figures`` maps model -> figure name -> PNG path
-    (embedded); ``viewer``: the 3-D view's HTML (empty: none)."""
+    """report.html text from the report.json content; ``figures`` maps model ("" for the run's own) ->
+    figure name -> PNG path (embedded); ``viewer``: the 3-D view's HTML (empty: none)."""
     parts = ["<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>bonecad report</title>",
              f"<style>{_STYLE}</style></head><body>", "<h1>bonecad report</h1>", "<h2 id='summary'>Summary</h2>"]
     tol = report.get("tolerances")
@@ -231,6 +265,8 @@ def render_html(report: dict[str, Any], figures: dict[str, dict[str, Path]], vie
         parts += ["<h2 id='view'>3-D view</h2>", viewer]
     if report.get("comparison"):
         parts += ["<h2>NURBS versus T-spline</h2>", table(report["comparison"], ["quantity", "nurbs", "tspline"])]
+    if any(figures.values()):
+        parts += ["<h2 id='figures'>Figures</h2>", figures_section(figures, tol["within_mm"] if tol else None)]
     if report.get("contours"):
         parts += ["<h2>Contour curves</h2>",
                   table([{"region": r["region"], "curves": r["curves"], "control points per curve":
@@ -258,7 +294,6 @@ def render_html(report: dict[str, Any], figures: dict[str, dict[str, Path]], vie
                                 "C^k inside (u, v)": k["min_continuity"]} for k in model["knots"]])]
         if model["info"]:
             parts += ["<h3>Model figures</h3>", info_tables(model["info"])]
-        parts += [_figure(f"{name}: {fig_name}", path) for fig_name, path in figures.get(name, {}).items()]
     parts += ["<h2>Timings</h2>", table([{"stage": k, "seconds": v} for k, v in report["timings_s"].items()]),
               "</body></html>"]
     return "\n".join(parts)

@@ -3,10 +3,16 @@
 The meshes (the input mesh and each model's tessellation, decimated to
 ``[analysis] view_max_triangles``) are embedded as base64 float32/uint32 arrays
 with their signed deviation per vertex (mm, positive = mesh outside the CAD
-model). The page colours them on a diverging scale (blue inside, red outside,
-symmetric about 0, the limit editable), lays them side by side as seen from the
-front, draws the anatomical frame's axes, and orbits/zooms with the mouse
-(three.js TrackballControls); a checkbox per mesh shows or hides it.
+model), and each model's seams (the borders of its faces, from the full
+tessellation) as line segments. The page colours them on a diverging scale
+(blue inside, red outside, symmetric about 0, the limit editable) or shows
+reflection lines (zebra, computed per pixel in a shader from the interpolated
+normals of the decimated mesh: smoothed, so the report's zebra figures, on the
+exact normals, are the check of the seams), lays them side by side as seen
+from the front, draws the anatomical frame's axes and the region boundaries
+as planes across each bone, and orbits/zooms with the mouse (three.js
+TrackballControls); checkboxes show or hide each mesh, the seams, the planes
+and the axes.
 
 three.js (r140, MIT) is the copy trimesh bundles for its notebook viewer.
 """
@@ -17,11 +23,12 @@ import html
 import io
 import json
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from bonecad.mesh.closest import TriangleLocator, vertex_normals
+from bonecad.mesh.topology import edge_counts
 
 
 @dataclass(frozen=True)
@@ -33,6 +40,7 @@ class ViewMesh:
     vertices: np.ndarray
     triangles: np.ndarray
     deviation_mm: dict[str, np.ndarray]
+    seams: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))  # (k, 2, 3) segment ends, mm
 
 
 def decimate(vertices: np.ndarray, triangles: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:
@@ -60,11 +68,25 @@ def deviation_at(points: np.ndarray, bone_vertices: np.ndarray, bone_faces: np.n
     return np.where(outside, -near.distance, near.distance)
 
 
-def model_view(name: str, vertices: np.ndarray, triangles: np.ndarray, bone_vertices: np.ndarray,
-               bone_faces: np.ndarray, max_triangles: int) -> ViewMesh:
-    """A model's tessellation, decimated, coloured by its deviation from the bone mesh."""
+def face_seams(vertices: np.ndarray, triangles: np.ndarray, triangle_face: np.ndarray) -> np.ndarray:
+    """(k, 2, 3) the edges of a tessellation where two faces meet or the surface ends (mm): the edges
+    of one triangle only (faces tessellated apart) or of two triangles on different faces."""
+    triangles = np.asarray(triangles, dtype=np.int64)
+    edges = edge_counts(triangles, len(vertices))
+    face = np.asarray(triangle_face)[edges.half_edges // 3]
+    seam = (edges.faces_per_edge == 1) | (face[:, 0] != face[:, 1])
+    low = edges.keys[seam] // len(vertices)
+    high = edges.keys[seam] % len(vertices)
+    return np.stack([vertices[low], vertices[high]], axis=1)
+
+
+def model_view(name: str, vertices: np.ndarray, triangles: np.ndarray, triangle_face: np.ndarray,
+               bone_vertices: np.ndarray, bone_faces: np.ndarray, max_triangles: int) -> ViewMesh:
+    """A model's tessellation (``triangle_face``: each triangle's face), decimated, coloured by its
+    deviation from the bone mesh, with its seams."""
     v, f = decimate(vertices, triangles, max_triangles)
-    return ViewMesh(name, v, f, {name: deviation_at(v, bone_vertices, bone_faces)})
+    return ViewMesh(name, v, f, {name: deviation_at(v, bone_vertices, bone_faces)},
+                    face_seams(vertices, triangles, triangle_face))
 
 
 def input_view(bone_vertices: np.ndarray, bone_faces: np.ndarray, vertex_deviation_mm: dict[str, np.ndarray],
@@ -101,12 +123,16 @@ def _b64(array: np.ndarray, dtype) -> str:
 
 
 def scene_json(meshes: list[ViewMesh], frame: dict, limit_mm: float) -> str:
-    """The view's data as JSON: meshes (base64 arrays), the frame's origin and axes, the colour limit."""
+    """The view's data as JSON: meshes (base64 arrays), the frame's origin and axes, the region boundaries'
+    heights above the origin (mm), the colour limit."""
     bone = frame.get("bone_frame", {})
+    regions = frame.get("regions_mm_above_origin", {})
     data = {
         "limit_mm": limit_mm,
         "frame": {k: bone.get(k) for k in ("origin", "lateral", "anterior", "proximal")} if bone else None,
+        "boundaries_mm": [regions["shaft"][0], regions["shaft"][1]] if "shaft" in regions else [],
         "meshes": [{"name": m.name, "positions": _b64(m.vertices, "<f4"), "indices": _b64(m.triangles, "<u4"),
+                    "seams": _b64(m.seams, "<f4"),
                     "deviation": {k: _b64(d, "<f4") for k, d in m.deviation_mm.items()}} for m in meshes],
     }
     return json.dumps(data)
@@ -135,9 +161,16 @@ def viewer_html(meshes: list[ViewMesh], frame: dict) -> str:
         + ". Drag to orbit, wheel to zoom, right-drag to pan. Colour: signed deviation, mm "
         "(red = mesh outside the CAD model, blue = inside); the input mesh is coloured by its deviation from "
         f"the model chosen here: <select id='colour-by'>{colour_by}</select></p>"
-        f"<p>{toggles}<label style='margin-right:1.2em'>colour limit, mm "
-        "<input id='colour-limit' type='number' step='0.05' min='0.01' "
-        "style='width:5em'></label> <label><input type='checkbox' id='show-frame' checked> frame axes</label></p>"
+        f"<p>{toggles}</p><p><label style='margin-right:1.2em'>show <select id='shading'>"
+        "<option value='deviation' selected>deviation</option><option value='zebra'>zebra (reflection lines)"
+        "</option><option value='plain'>plain</option></select></label>"
+        "<label style='margin-right:1.2em'>colour limit, mm "
+        "<input id='colour-limit' type='number' step='0.05' min='0.01' style='width:5em'></label>"
+        "<label style='margin-right:1.2em'>stripes <input id='stripes' type='number' step='5' min='5' "
+        "value='40' style='width:4em'></label>"
+        "<label style='margin-right:1.2em'><input type='checkbox' id='show-seams'> seams (face borders)"
+        "</label><label style='margin-right:1.2em'><input type='checkbox' id='show-planes' checked> region "
+        "boundaries</label><label><input type='checkbox' id='show-frame' checked> frame axes</label></p>"
         "<div style='position:relative'><canvas id='view-canvas' width='1200' height='700' "
         "style='width:100%;max-width:1200px;border:1px solid #999;background:#fff'></canvas>"
         "<div id='colour-scale' style='display:flex;align-items:center;gap:6px;margin-top:4px'>"

@@ -303,10 +303,19 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
         with timings.stage("morphometry"):
             measured = measure_tibia(bone, frame, settings.morphometry).values()
         with timings.stage("report"):
+            from bonecad.render.figures import histograms_png
+
+            tolerances = Tolerances.of(settings.tspline)
+            figures = {"curves": stage_dir / "curves.png",
+                       "histograms": histograms_png(
+                           stage_dir / "histograms.png",
+                           {m: {"whole bone": dev.mesh_to_cad.histogram, **dev.mesh_to_cad.region_histograms}
+                            for m in shown if (dev := reports[m].deviation) is not None},
+                           tolerance_mm=tolerances.within_mm)}
             doc = ReportDocument(input_summary={**bone.summary(), "side": frame.side}, frame=frame.as_dict(),
                                  models=tuple(reports[m] for m in MODELS if m in reports),
                                  timings_s={**timings.seconds, "total (wall)": timings.wall_s()},
-                                 tolerances=Tolerances.of(settings.tspline), contours=contours,
+                                 tolerances=tolerances, contours=contours, figures=figures,
                                  viewer=viewer_html(list(views_in_order), frame.as_dict()),
                                  morphometry=measured)
             export("report", doc, stage_dir)
@@ -332,7 +341,8 @@ def curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path,
     timings = Timings()
     with timings.stage("curves to STEP, IGES and PNG"):
         export("curves", contours, stage_dir, only=["step", "iges"])
-        curves_png(stage_dir / "curves.png", *bone_coordinates(bone, contours.frame), contours)
+        curves_png(stage_dir / "curves.png", *bone_coordinates(bone, contours.frame), contours,
+                   height_px=settings.analysis.figure_height_px)
     if not nurbs:
         return timings.seconds, None
     with timings.stage("NURBS model"):
@@ -346,28 +356,24 @@ def curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path,
 
 def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: Path, settings: Settings,
             info: dict, ex: Executor) -> tuple[ModelReport, ViewMesh]:
-    """Deviation, continuity and the figures ``{name}_deviation.png``, ``{name}_histogram.png`` and
-    ``{name}_zebra.png`` of one model, and its mesh for the 3-D view; zebra and continuity, the colour
-    map and the view's mesh as background jobs."""
-    from bonecad.render.figures import deviation_map_png, histogram_png
+    """Deviation, continuity and the figures ``{name}_deviation.png`` and ``{name}_zebra.png`` of one
+    model, and its mesh for the 3-D view; zebra and continuity, the colour map and the view's mesh as
+    background jobs."""
+    from bonecad.render.figures import deviation_map_png
 
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     tess = tessellate_model(model.shape, settings.analysis)
     side = ex.submit(zebra_and_continuity, name, model, tess, out_dir, view_frame, settings)
-    view = ex.submit(model_view, name, tess.vertices, tess.triangles, bone.work.vertices, bone.work.faces,
-                     settings.analysis.view_max_triangles)
+    view = ex.submit(model_view, name, tess.vertices, tess.triangles, tess.triangle_face, bone.work.vertices,
+                     bone.work.faces, settings.analysis.view_max_triangles)
     deviation = model_deviation(tess, bone, frame, settings.analysis)
     shown = bone.work  # the colour map draws the working copy (its vertices' deviations)
     colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", shown.vertices, shown.faces,
                            deviation.vertex_deviation_mm, view_frame,
-                           title=f"{name}: deviation of the mesh from the CAD model, mm")
-    histogram = histogram_png(
-        out_dir / f"{name}_histogram.png",
-        {"whole bone": deviation.mesh_to_cad.histogram, **deviation.mesh_to_cad.region_histograms},
-        title=f"{name}: share of surface per deviation band",
-    )
+                           title=f"{name}: deviation of the mesh from the CAD model, mm",
+                           height_px=settings.analysis.figure_height_px)
     zebra, (continuity, knots) = side.result()
-    figures = {"deviation": colour_map.result(), "histogram": histogram, "zebra": zebra}
+    figures = {"deviation": colour_map.result(), "zebra": zebra}
     report = ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots,
                          figures=figures)
     return report, view.result()
@@ -377,7 +383,8 @@ def zebra_and_continuity(name: str, model, tess, out_dir: Path, view_frame: np.n
     """The zebra figure, and the seam and knot continuity, of a tessellated model."""
     from bonecad.render.figures import zebra_png
 
-    zebra = zebra_png(out_dir / f"{name}_zebra.png", tess, view_frame, title=f"{name}: zebra (reflection lines)")
+    zebra = zebra_png(out_dir / f"{name}_zebra.png", tess, view_frame, title=f"{name}: zebra (reflection lines)",
+                      height_px=settings.analysis.figure_height_px)
     return zebra, model_continuity(model.shape, tess, list(model.face_names), settings.analysis)
 
 
