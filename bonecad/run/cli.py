@@ -308,20 +308,24 @@ def cohort_progress(args: argparse.Namespace) -> Iterator[Callable | None]:
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    bar = tqdm(desc="cohort", unit="bone", file=sys.stderr, dynamic_ncols=True)
+    bars: list = []  # made at the first call, when the number of bones (and of journalled ones) is known
     failures: dict[str, int] = {}
-    with bar, logging_redirect_tqdm(loggers=[package_log]):
+    with logging_redirect_tqdm(loggers=[package_log]):
         def update(ended: int, total: int, record) -> None:
             if record is None:
-                bar.reset(total=total)
-                bar.update(ended)
+                bars.append(tqdm(total=total, initial=ended, desc="cohort", unit="bone", file=sys.stderr,
+                                 dynamic_ncols=True))
                 return
-            bar.update(1)
+            bars[0].update(1)
             if record.status != "done":
                 failures[record.status] = failures.get(record.status, 0) + 1
-                bar.set_postfix_str(", ".join(f"{n} {status}" for status, n in failures.items()))
+                bars[0].set_postfix_str(", ".join(f"{n} {status}" for status, n in failures.items()))
 
-        yield update
+        try:
+            yield update
+        finally:
+            for bar in bars:
+                bar.close()
 
 
 def _run_cohort(args: argparse.Namespace, settings) -> int:

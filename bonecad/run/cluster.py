@@ -113,7 +113,7 @@ class DaskExecutor:
                 with dask.config.set({"distributed.scheduler.allowed-failures": self.allowed_failures,
                                       "distributed.worker.profile.enabled": False}):
                     cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                           dashboard_address=None)
+                                           dashboard_address=":0", silence_logs=logging.ERROR)
                 self._stack.callback(cluster.close, timeout=_CLOSE_S)
                 self.client = self._stack.enter_context(Client(cluster))
                 log.info("local Dask cluster: %d worker processes, one thread each", self.workers)
