@@ -179,7 +179,7 @@ def _safe_id(text: str) -> str:
 def cohort_sources(path: str | Path, *, exclude: str | Path | None = None) -> list[BoneSource]:
     """The bones of a folder (every mesh file, volume file and DICOM sub-folder in it; hidden names and
     ``exclude``, the output folder, left out) or of a CSV manifest (see ``manifest_sources``), sorted by id."""
-    path = Path(path)
+    path = Path(os.path.abspath(path))  # a bone's path is its journal's key: the same however it is named
     if path.is_file() and path.suffix.lower() == ".csv":
         return manifest_sources(path)
     if not path.is_dir():
@@ -203,7 +203,7 @@ def manifest_sources(manifest: str | Path) -> list[BoneSource]:
     """The bones of a CSV manifest: a ``path`` column (relative to the manifest's folder), optional ``id``
     (default: the file name without its suffix), ``side`` (left/right, checked against the anatomy), ``units``
     (auto/mm/cm/m, of a mesh); other columns are carried into the cohort table."""
-    manifest = Path(manifest)
+    manifest = Path(os.path.abspath(manifest))
     try:
         with manifest.open(newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)
@@ -220,7 +220,7 @@ def manifest_sources(manifest: str | Path) -> list[BoneSource]:
         if not row["path"]:
             raise InputError(f"line {line}: empty path", manifest)
         path = Path(row["path"]).expanduser()
-        path = path if path.is_absolute() else manifest.parent / path
+        path = Path(os.path.abspath(manifest.parent / path))
         bone_id = row.get("id") or _safe_id(_stem(path))
         if not _ID.match(bone_id):
             raise InputError(f"line {line}: id {bone_id!r} is not a file name (letters, digits, '.', '_', '-')",
