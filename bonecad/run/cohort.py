@@ -301,7 +301,7 @@ CohortProgress = Callable[[int, int, "BoneRecord | None"], None]
 
 @dataclass(frozen=True, eq=False)
 class CohortResult:
-    """A cohort run: every bone's record (by id), how many came from the journal, the output folder, wall s."""
+    """A cohort run: every bone's record (sorted by id), how many came from the journal, the output folder, wall s."""
 
     records: tuple[BoneRecord, ...]
     resumed: int
