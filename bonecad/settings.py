@@ -198,6 +198,21 @@ class PipelineSettings:
 
 
 @dataclass(frozen=True)
+class CohortSettings:
+    """``bonecad cohort``: local worker processes (0: one per CPU core), Dask task retries, worker deaths a bone
+    may cause before it is marked failed, and the time (s) after which a running bone is marked failed."""
+
+    workers: int
+    retries: int
+    allowed_failures: int
+    timeout_s: float
+
+    def __post_init__(self) -> None:
+        if self.workers < 0 or self.retries < 0 or self.allowed_failures < 0 or self.timeout_s <= 0:
+            raise ValueError("workers, retries and allowed_failures must be >= 0 and timeout_s > 0")
+
+
+@dataclass(frozen=True)
 class Settings:
     """Every setting of a run, one section per stage (see ``data/defaults.toml``)."""
 
@@ -211,6 +226,7 @@ class Settings:
     analysis: AnalysisSettings
     patch: PatchSettings
     pipeline: PipelineSettings
+    cohort: CohortSettings
 
     @classmethod
     def load(cls, path: str | Path | None = None,

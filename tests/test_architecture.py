@@ -2,7 +2,8 @@
 
 Every ``import`` in the package counts, module-level or inside a function. A
 module may import its own package and the layers below; OpenCascade (OCP,
-build123d) only in the bridge; processes only in the runner's executor; and no
+build123d) only in the bridge; processes only in the runner's executors
+(``run/executor.py``, and the Dask cluster in ``run/cluster.py``); and no
 import cycle between modules.
 """
 from __future__ import annotations
@@ -90,10 +91,15 @@ def test_opencascade_only_in_the_bridge():
     assert not offenders
 
 
-def test_processes_only_in_the_executor():
+#: the modules that start processes: the runner's executors (forked children; the Dask cluster)
+EXECUTORS = {"bonecad.run.executor", "bonecad.run.cluster"}
+
+
+def test_processes_only_in_the_executors():
     offenders = sorted(m for m, (_, other) in IMPORTS.items()
-                       if other & {"multiprocessing", "subprocess", "concurrent"} and m != "bonecad.run.executor")
-    forks = sorted(m for m, p in MODULES.items() if "os.fork" in p.read_text() and m != "bonecad.run.executor")
+                       if other & {"multiprocessing", "subprocess", "concurrent", "dask", "distributed"}
+                       and m not in EXECUTORS)
+    forks = sorted(m for m, p in MODULES.items() if "os.fork" in p.read_text() and m not in EXECUTORS)
     assert not offenders and not forks
 
 

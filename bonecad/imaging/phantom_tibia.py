@@ -264,3 +264,29 @@ def design_measurements(p: TibiaParameters, settings: MorphometrySettings) -> di
     m["torsion_deg"] = float(np.degrees(np.arctan2(proximal[1], proximal[0])
                                         - np.arctan2(distal_axis[1], distal_axis[0])))
     return m
+
+
+#: the span (mm) each parameter of a varied phantom is drawn from, uniformly: the adult ranges of tibial length
+#: (320-420 mm), plateau width (68-84 mm) and depth, shaft and plafond widths and depths, malleolus and
+#: tuberosity, each about +-12 % (+-25 % for the small features) around the default phantom's value
+VARIED_SPANS_MM: dict[str, tuple[float, float]] = {
+    "length_mm": (320.0, 420.0),
+    "plateau_width_mm": (68.0, 84.0),
+    "plateau_depth_mm": (44.0, 56.0),
+    "plateau_posterior_offset_mm": (5.0, 9.0),
+    "shaft_width_mm": (19.0, 25.0),
+    "shaft_depth_mm": (22.0, 28.0),
+    "distal_width_mm": (44.0, 56.0),
+    "distal_depth_mm": (35.0, 45.0),
+    "malleolus_length_mm": (11.0, 17.0),
+    "tuberosity_height_mm": (7.0, 11.0),
+}
+
+
+def varied_parameters(count: int, *, seed: int = 0) -> list[TibiaParameters]:
+    """``count`` phantom parameter sets, each parameter drawn uniformly from ``VARIED_SPANS_MM`` (seeded:
+    the same ``seed`` gives the same cohort)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = (np.array([span[i] for span in VARIED_SPANS_MM.values()]) for i in (0, 1))
+    draws = lo + (hi - lo) * rng.random((count, len(VARIED_SPANS_MM)))
+    return [TibiaParameters(**dict(zip(VARIED_SPANS_MM, map(float, row)))) for row in draws]

@@ -151,6 +151,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder")
     _add_logging(p)
 
+    p = sub.add_parser("cohort", help="every bone of a folder or CSV manifest, in parallel on Dask -> cohort.csv",
+                       description="Run every bone of a folder (mesh files, CT volume files, DICOM sub-folders) or "
+                       "of a CSV manifest (columns: path, and optionally id, side, units, and any others, which are "
+                       "carried into the table) on a Dask cluster: intake or CT segmentation and the anatomical "
+                       "frame, one bone per task. Writes cohort.csv (one row per bone: id, path, status, error, "
+                       "side, parameters, fit figures), cohort.json (the same, the failures, the settings and the "
+                       "versions) and points/<id>.npy into --out. A bad or failing bone is reported and the rest "
+                       "completes; each finished bone is journalled in OUT/.bones, so an interrupted run resumes "
+                       "where it stopped. Exit status: 0 every bone done, 2 some bad input, 1 some failed (the "
+                       "table is written in every case).")
+    p.add_argument("input", type=Path, nargs="?", help="folder of bones or CSV manifest (not with --demo)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (and the journal of a resumed run)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="local worker processes, one thread each (default: [cohort] workers; 0: one per CPU core)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786, "
+                   "instead of a local cluster (its workers must read the input and bonecad must be installed there)")
+    p.add_argument("--timeout", type=float, metavar="S",
+                   help="seconds after which a running bone is marked failed (default: [cohort] timeout_s)")
+    p.add_argument("--demo", type=int, metavar="N",
+                   help="make N phantom tibias of varied parameters in OUT/phantoms and run the cohort on them")
+    p.add_argument("--config", type=Path, help="TOML file overriding defaults (angles, counts, tolerances)")
+    _add_logging(p)
+
     p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
                        description="Generate the synthetic phantom tibia and run every stage available on it; "
                        "write phantom.stl and the stage outputs into --out.")
@@ -239,6 +262,7 @@ def settings_of(args: argparse.Namespace):
         "nurbs": {"apex_fill": getattr(args, "apex_fill", None)},
         "tspline": {"compare_tensor_product": getattr(args, "compare_tensor_product", None)},
         "pipeline": {"models": None if getattr(args, "model", None) in (None, "both") else [args.model]},
+        "cohort": {"workers": getattr(args, "workers", None), "timeout_s": getattr(args, "timeout", None)},
     }
     if getattr(args, "model", None) == "both":
         flags["pipeline"]["models"] = ["nurbs", "tspline"]
@@ -246,7 +270,8 @@ def settings_of(args: argparse.Namespace):
     return Settings.load(args.config, overrides)
 
 
-def _run(args: argparse.Namespace) -> None:
+def _run(args: argparse.Namespace) -> int:
+    """Run the command; its exit status (a failure raises)."""
     from bonecad.run import pipeline
 
     if args.command == "convert":
@@ -254,7 +279,7 @@ def _run(args: argparse.Namespace) -> None:
 
         ts, step = convert_tsm(args.input, args.out)
         print(f"{ts.n_control} control points, {ts.extraction.n_elements} Bezier elements: {step}")
-        return
+        return EXIT_OK
     settings = settings_of(args)
     if args.command == "inspect":
         summary = pipeline.inspect(args.mesh, settings, units=args.units)
@@ -287,11 +312,68 @@ def _run(args: argparse.Namespace) -> None:
     elif args.command == "segment":
         bone = pipeline.run_segment(args.ct, args.out, settings)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
+    elif args.command == "cohort":
+        return _run_cohort(args, settings)
     elif args.command == "demo":
         with fit_progress(args, settings.tspline.max_rounds) as progress:
             result = pipeline.run_demo(args.out, settings, progress=progress)
         _print_result(result)
         print(f"demo outputs written to {args.out} ({result.wall_s:.1f} s)")
+    return EXIT_OK
+
+
+@contextmanager
+def cohort_progress(args: argparse.Namespace) -> Iterator[Callable | None]:
+    """A progress bar of the cohort's bones on stderr, only on a terminal and without ``-q`` (else each bone's
+    log line says it); yields the runner's callback (bones ended, bones in all, record or None)."""
+    if args.quiet or not sys.stderr.isatty():
+        yield None
+        return
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    bars: list = []  # made at the first call, when the number of bones (and of journalled ones) is known
+    failures: dict[str, int] = {}
+    with logging_redirect_tqdm(loggers=[package_log]):
+        def update(ended: int, total: int, record) -> None:
+            if record is None:
+                bars.append(tqdm(total=total, initial=ended, desc="cohort", unit="bone", file=sys.stderr,
+                                 dynamic_ncols=True))
+                return
+            bars[0].update(1)
+            if record.status != "done":
+                failures[record.status] = failures.get(record.status, 0) + 1
+                bars[0].set_postfix_str(", ".join(f"{n} {status}" for status, n in failures.items()))
+
+        try:
+            yield update
+        finally:
+            for bar in bars:
+                bar.close()
+
+
+def _run_cohort(args: argparse.Namespace, settings) -> int:
+    from bonecad.run.cohort import run_cohort, write_phantom_cohort
+    from bonecad.run.cluster import DaskExecutor
+
+    if (args.input is None) == (args.demo is None):
+        raise InputError("give a folder of bones or a CSV manifest, or --demo N (not both)")
+    source = args.input
+    if args.demo is not None:
+        if args.demo < 1:
+            raise InputError(f"--demo needs at least one bone, got {args.demo}")
+        source = args.out / "phantoms"
+        log.info("making %d phantom tibias in %s", args.demo, source)
+        with DaskExecutor(workers=settings.cohort.workers, scheduler=args.scheduler) as ex:
+            write_phantom_cohort(source, args.demo, settings, ex)
+    with cohort_progress(args) as progress:
+        result = run_cohort(source, args.out, settings, scheduler=args.scheduler, progress=progress)
+    for r in result.failures:
+        print(f"{r.bone_id}: {r.status}: {r.error}")
+    print(f"{len(result.records)} bones: {result.count('done')} done, {result.count('bad input')} bad input, "
+          f"{result.count('failed')} failed ({result.resumed} from the journal); cohort.csv and cohort.json written "
+          f"to {args.out} ({result.wall_s:.1f} s)")
+    return result.exit_status
 
 
 class Interrupted(BaseException):
@@ -308,10 +390,14 @@ def main(argv: list[str] | None = None) -> int:
     _setup_logging(args)
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
-        _run(args)
+        status = _run(args)
     except (KeyboardInterrupt, Interrupted) as exc:
         name = str(exc) or "SIGINT"
-        print(f"bonecad: interrupted ({name}); no output written", file=sys.stderr)
+        if args.command == "cohort":
+            print(f"bonecad: interrupted ({name}); the bones finished so far are journalled in "
+                  f"{args.out / '.bones'}: the same command resumes from them", file=sys.stderr)
+        else:
+            print(f"bonecad: interrupted ({name}); no output written", file=sys.stderr)
         return 128 + int(getattr(signal, name, signal.SIGINT))
     except InputError as exc:
         print(f"bonecad: error: {exc}", file=sys.stderr)
@@ -326,7 +412,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INTERNAL
     finally:
         signal.signal(signal.SIGTERM, previous)
-    return EXIT_OK
+    return status
 
 
 if __name__ == "__main__":  # pragma: no cover
