@@ -80,12 +80,18 @@ def test_every_good_bone_is_done(manifest_run):
     phantoms = [r for r in result.records if r.bone_id.startswith("phantom_")]
     assert len(phantoms) == 6 and all(r.status == "done" for r in phantoms), [r.error for r in phantoms]
     for r in phantoms:
-        assert r.side == "right" and 300 < r.parameters["mechanical_length_mm"] < 440, r
+        assert r.side == "right" and 300 < r.parameters["length_mm"] < 440, r
         assert r.cpu_s > 0 and r.worker
     rows = list(csv.DictReader((out / "cohort.csv").open()))
     assert [row["id"] for row in rows] == [r.bone_id for r in result.records]
     assert {row["group"] for row in rows if row["id"].startswith("phantom_")} == {"phantom"}
-    assert all(float(row["mechanical_length_mm"]) > 300 for row in rows if row["status"] == "done")
+    assert all(float(row["length_mm"]) > 300 for row in rows if row["status"] == "done")
+    # the measure columns (``bonecad measure``): each phantom's length and plateau width as designed
+    from bonecad.anatomy.morphometry import PARAMETER_NAMES
+
+    assert set(PARAMETER_NAMES) <= set(rows[0])
+    for r in phantoms:
+        assert 60.0 < r.parameters["plateau_width_mm"] < 95.0
     doc = json.loads((out / "cohort.json").read_text())
     assert doc["bones"] == len(result.records) and doc["settings"]["cohort"]["workers"] == 2
     assert {"bonecad", "dask", "distributed", "numpy"} <= set(doc["versions"])
@@ -112,7 +118,7 @@ def test_the_real_tibias_are_done_with_their_sides(manifest_run):
     for p in REAL_MESHES:  # the manifest's side is checked against the anatomy: done means they agree
         r = real[p.stem]
         assert r.status == "done" and r.side == README_SIDES.get(p.name, "right"), (r.bone_id, r.error)
-        assert 300 < r.parameters["mechanical_length_mm"] < 420, r.parameters
+        assert 300 < r.parameters["length_mm"] < 420, r.parameters
 
 
 def test_a_rerun_takes_every_final_bone_from_the_journal(manifest_run):

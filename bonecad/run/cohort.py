@@ -40,6 +40,7 @@ import numpy as np
 
 from bonecad._version import __version__
 from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
+from bonecad.anatomy.morphometry import measure_tibia
 from bonecad.errors import InputError
 from bonecad.mesh.intake import MESH_SUFFIXES, Units
 from bonecad.run.cluster import DaskExecutor
@@ -111,10 +112,9 @@ class BoneRecord:
 
 
 def frame_parameters(frame: AnatomicalFrame) -> dict[str, float]:
-    """The anatomical frame's measurements (mm): mechanical axis length (plateau centre to plafond centre), the
-    plateau ellipse's semi-axes, the bone's extent along the axis, the region boundaries above the plafond."""
-    return {"mechanical_length_mm": float(frame.mechanical_length_mm),
-            "plateau_semi_major_mm": float(frame.plateau.semi_axes_mm[0]),
+    """The anatomical frame's own figures beside ``bonecad measure``'s (mm): the plateau ellipse's semi-axes,
+    the bone's extent along the axis, the region boundaries above the plafond."""
+    return {"plateau_semi_major_mm": float(frame.plateau.semi_axes_mm[0]),
             "plateau_semi_minor_mm": float(frame.plateau.semi_axes_mm[1]),
             "axial_extent_mm": float(frame.bone_extent_mm[1] - frame.bone_extent_mm[0]),
             "distal_boundary_mm": float(frame.distal_boundary_mm),
@@ -134,7 +134,8 @@ def _bone_results(source: BoneSource, settings: Settings
     if source.side is not None and source.side != frame.side:
         raise InputError(f"the manifest says a {source.side} tibia; the anatomy (medial malleolus, tuberosity) "
                          f"says {frame.side}", source.path)
-    return frame.side, frame_parameters(frame), frame_figures(frame), None
+    measured = measure_tibia(bone, frame, settings.morphometry).values()
+    return frame.side, {**measured, **frame_parameters(frame)}, frame_figures(frame), None
 
 
 def cohort_job(source: BoneSource, settings: Settings) -> BoneRecord:
