@@ -51,6 +51,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, help="TOML file overriding defaults (angles, counts, tolerances)")
     p.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
                    help="units of the input mesh (default: auto, which accepts mm and names the unit otherwise)")
+    p.add_argument("--bone", choices=["auto", "tibia", "femur"], default=None,
+                   help="which bone the input is (default: auto, recognised: a femur has a head at its narrow end)")
     _add_logging(p)
 
 
@@ -219,7 +221,8 @@ def settings_of(args: argparse.Namespace):
                     "proximal_boundary_mm": getattr(args, "proximal_boundary", None)},
         "nurbs": {"apex_fill": getattr(args, "apex_fill", None)},
         "tspline": {"compare_tensor_product": getattr(args, "compare_tensor_product", None)},
-        "pipeline": {"models": None if getattr(args, "model", None) in (None, "both") else [args.model]},
+        "pipeline": {"models": None if getattr(args, "model", None) in (None, "both") else [args.model],
+                     "bone": getattr(args, "bone", None)},
     }
     if getattr(args, "model", None) == "both":
         flags["pipeline"]["models"] = ["nurbs", "tspline"]
