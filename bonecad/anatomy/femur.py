@@ -282,24 +282,34 @@ def _posterior_condyles(vertices, faces, knee, z, anterior, lateral, settings: F
 
 
 def _neck_axis(vertices, faces, head: Sphere, shaft_axis: np.ndarray) -> np.ndarray:
-    """The neck axis: from the head centre to the centroid of the narrowest neck section (sections
-    perpendicular to the line from the head centre to the shaft axis, 0.6-2 head radii from the centre)."""
+    """The neck axis: from the head centre to the centroid of the neck's smallest section 1.3-1.6 head radii
+    from the centre, over planes whose normals lie within 60 degrees of the line from the head centre to
+    the shaft axis and whose section is centred on the neck (a plane perpendicular to the neck cuts it
+    smallest)."""
     a, b = shaft_axis
     d = (b - a) / np.linalg.norm(b - a)
     foot = a + ((head.centre - a) @ d) * d
-    direction = (foot - head.centre) / np.linalg.norm(foot - head.centre)
-    offsets = np.linspace(0.6, 2.0, 15) * head.radius_mm
+    towards = (foot - head.centre) / np.linalg.norm(foot - head.centre)
+    u, v = plane_basis(towards)
+    tilt = np.radians(np.arange(0.0, 61.0, 10.0))
+    turn = np.radians(np.arange(0.0, 360.0, 30.0))
+    directions = [towards] + [np.cos(t) * towards + np.sin(t) * (np.cos(p) * u + np.sin(p) * v)
+                              for t in tilt[1:] for p in turn]
     best = None
-    for off in offsets:
-        sec = section_mesh(vertices, faces, head.centre + off * direction, direction)
-        loops = sec.loops()
-        if not loops:
-            continue
-        point = head.centre + off * direction
-        loop = min(loops, key=lambda lp: np.linalg.norm(lp.mean(axis=0) - point))
-        area = _loop_area(loop, direction)
-        if best is None or area < best[0]:
-            best = (area, loop.mean(axis=0))
+    for offset in (1.3, 1.6):  # the nearer first; further out on a short neck
+        for direction in directions:
+            point = head.centre + offset * head.radius_mm * direction
+            loops = section_mesh(vertices, faces, point, direction).loops()
+            if not loops:
+                continue
+            loop = min(loops, key=lambda lp: np.linalg.norm(lp.mean(axis=0) - point))
+            if np.linalg.norm(loop.mean(axis=0) - point) > 0.4 * head.radius_mm:
+                continue  # the plane cuts the neck aslant, or the trochanters with it: not a neck section
+            area = _loop_area(loop, direction)
+            if best is None or area < best[0]:
+                best = (area, loop.mean(axis=0))
+        if best is not None:
+            break
     if best is None:
         raise FitError("no section through the femoral neck")
     return np.vstack([head.centre, best[1]])
