@@ -253,7 +253,8 @@ def _run(args: argparse.Namespace) -> None:
             result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units,
                                           progress=progress)
         _print_result(result)
-        print(f"{result.frame.side} {result.frame.bone}; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
+        print(f"{result.frame.side} {result.frame.bone}; {len(result.files)} files written to {args.out} "
+              f"({result.wall_s:.1f} s)")
     elif args.command == "patch":
         region = pipeline.patch_region(settings, args.region, args.height, args.angle)
         doc = pipeline.run_patch(args.source, args.out, settings, region, mesh=args.mesh, units=args.units)
