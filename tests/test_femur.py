@@ -204,7 +204,11 @@ def test_femur_frame_json_and_reference_entities(femur_run):
     assert {"head", "neck_axis", "knee_centre", "posterior_condyles", "transepicondylar_axis",
             "anatomical_axis", "isb_frame"} <= set(frame)
     assert set(frame["mechanical_axis"]) >= {"start_knee_centre", "end_head_centre", "direction", "length_mm"}
-    assert (femur_run / "curves.step").stat().st_size > 0
+    # the apex on the head: where the proximal local axis leaves it, one head radius beyond its centre
+    apex, head = np.array(frame["apices"]["proximal"]), frame["head"]
+    assert abs(np.linalg.norm(apex - np.array(head["centre"])) - head["radius_mm"]) < 1.5
+    step = (femur_run / "curves.step").read_text()
+    assert all(f"'{n}'" in step for n in ("head_centre", "knee_centre", "transepicondylar_axis", "isb_z_right"))
 
 
 def test_tibia_profile_changes_no_setting(settings):

@@ -185,7 +185,8 @@ def femur_frame(bone: BoneMesh, *, settings: FemurSettings) -> AnatomicalFrame:
                          f"({proximal_b:.1f}) < {h_hi:.1f} mm above the knee centre")
     below_trochanters = _shaft_loop_centroid(vertices, faces, origin + proximal_b * z, z)
     distal_apex, _ = _axis_exits(vertices, faces, origin, z)
-    _, proximal_apex = _axis_exits(vertices, faces, below_trochanters, head.centre - below_trochanters)
+    neck_up = (head.centre - below_trochanters) / np.linalg.norm(head.centre - below_trochanters)
+    _, proximal_apex = _axis_exits(vertices, faces, below_trochanters, neck_up)
     landmarks = FemurLandmarks(head=head, neck_axis=neck_axis, knee_centre=knee, condyle_centres=condyle_c,
                                condyle_radii_mm=condyle_r, epicondyles=epicondyles, shaft_axis=shaft_axis,
                                isb_axes=isb)
