@@ -24,6 +24,7 @@ from bonecad.errors import FitError, InputError
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.sections import plane_basis, section_mesh, section_stack
 from bonecad.settings import FemurSettings
+from bonecad.splines.lsq import least_squares
 
 
 def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -31,7 +32,7 @@ def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
     (centre, radius, RMS of the radial residuals), mm."""
     design = np.column_stack([2.0 * points, np.ones(len(points))])
     rhs = (points**2).sum(axis=1)
-    sol, *_ = np.linalg.lstsq(design, rhs, rcond=None)
+    sol = least_squares(design, rhs)
     centre = sol[:3]
     radius = float(np.sqrt(max(sol[3] + centre @ centre, 0.0)))
     rms = float(np.sqrt(np.mean((np.linalg.norm(points - centre, axis=1) - radius) ** 2)))
