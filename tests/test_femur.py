@@ -217,5 +217,8 @@ def test_tibia_profile_changes_no_setting(settings):
     tibia = load_profile("tibia")
     assert tibia.frame == "tibia" and tibia.wider_end == "proximal"
     assert settings.for_bone(tibia) == settings
-    assert load_profile("femur").wider_end == "distal"
+    femur = load_profile("femur")
+    assert femur.wider_end == "distal" and femur.frame == "femur"
+    assert settings.for_bone(femur).tspline.max_rounds == 14  # the profile's own setting, over the defaults
+    assert settings.for_bone(femur).curves == settings.curves
 
