@@ -163,12 +163,15 @@ def _setup_logging(args: argparse.Namespace) -> None:
 def _print_inspect(summary: dict) -> None:
     print(f"file        {summary['file']}")
     print(f"units       {summary['units']} (detected)")
-    print(f"triangles   {summary['triangles']} (tibia, after cleanup)")
+    femur = summary.get("bone") == "femur"
+    print(f"triangles   {summary['triangles']} ({summary.get('bone', 'tibia')}, after cleanup)")
     print(f"watertight  {'yes' if summary['watertight'] else 'no'}")
-    print(f"side        {summary['side']} (from the anatomy: medial malleolus, tuberosity)")
-    print(f"axis length {summary['mechanical_axis_length_mm']} mm (plateau centre to plafond centre)")
+    cue = "the head is medial" if femur else "medial malleolus, tuberosity"
+    print(f"side        {summary['side']} (from the anatomy: {cue})")
+    ends = "knee centre to head centre" if femur else "plateau centre to plafond centre"
+    print(f"axis length {summary['mechanical_axis_length_mm']} mm ({ends})")
     semi_axes = summary['plateau_semi_axes_mm']
-    print(f"plateau     ellipse semi-axes {semi_axes[0]} x {semi_axes[1]} mm")
+    print(f"{'condyles' if femur else 'plateau':<11} ellipse semi-axes {semi_axes[0]} x {semi_axes[1]} mm")
     print("bodies")
     for b in summary["bodies"]:
         kept = "kept" if b["role"] == "tibia" else "dropped"
