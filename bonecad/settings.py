@@ -78,8 +78,9 @@ class AnatomySettings:
 @dataclass(frozen=True)
 class FemurSettings:
     """The femur's frame: its length (mm); the head's search (share of the length from the narrow end),
-    radius range, Hough bin, inlier band (mm) and least sphere coverage; the knee centre's search (share
-    of the length); the condyles' search height (mm); flare ratios and region boundaries as [anatomy]'s."""
+    radius range, Hough bin, inlier band (mm), least sphere coverage and least offset from the long axis
+    (mm); the knee centre's search (share of the length); the condyles' search height (mm); flare ratios
+    and region boundaries as [anatomy]'s."""
 
     length_mm: tuple[float, float]
     head_search_share: float
@@ -87,6 +88,7 @@ class FemurSettings:
     head_vote_bin_mm: float
     head_inlier_mm: float
     head_min_coverage: float
+    head_min_offset_mm: float
     knee_search_share: float
     condyle_search_mm: float
     distal_flare_ratio: float

@@ -104,12 +104,17 @@ def wider_end_axis(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
 
 
 def head_at_narrow_end(bone: BoneMesh, settings: FemurSettings) -> tuple[Sphere | None, np.ndarray, float]:
-    """The femoral head at the narrower end of a bone (None when no sphere is there), the unit axis
-    towards the wider end and the bone's length (mm)."""
+    """The femoral head at the narrower end of a bone (None when no sphere is there, or one on the long
+    axis rather than off it on a neck), the unit axis towards the wider end and the bone's length (mm)."""
     work = bone.work
-    _, axis, length = wider_end_axis(work.vertices, work.faces)
+    centre, axis, length = wider_end_axis(work.vertices, work.faces)
     zone = _end_zone(work.vertices, work.faces, axis, settings.head_search_share, high=False)
-    return find_head(work.vertices, work.faces, zone, settings), axis, length
+    head = find_head(work.vertices, work.faces, zone, settings)
+    if head is not None:
+        rel = head.centre - centre
+        if np.linalg.norm(rel - (rel @ axis) * axis) < settings.head_min_offset_mm:
+            head = None  # a rounded end on the long axis, not a head on a neck
+    return head, axis, length
 
 
 def femur_frame(bone: BoneMesh, *, settings: FemurSettings) -> AnatomicalFrame:
