@@ -14,7 +14,13 @@ volume against the mesh's), the control points, the deviation (share within
 0.25 mm, max, RMS of the mesh against the model) and the seam classes away from the
 apex caps and at them.
 
-Run: python benchmarks/bench_pipeline.py [--repeats N] [MESH.stl ... | all]
+Femurs (issue 22): ``femurs`` runs the four femurs of ../shared/data/femur the same way, and each
+beside its own subject's tibia (the bones the intake keeps: LHDL 70 k / 48 k triangles, ICL 29 k /
+15 k): the CPU time of ``reconstruct`` per triangle of each, and their ratio (target: a femur at
+most 1.5 times a tibia of the same size). Measured (one run each, shared host): LHDL femur 32.3 s,
+tibia 23.4 s CPU, ratio 0.94 per triangle; ICL 52.5 s and 34.1 s, ratio 0.78.
+
+Run: python benchmarks/bench_pipeline.py [--repeats N] [MESH.stl ... | all | femurs [NAME ...]]
 """
 from __future__ import annotations
 
@@ -31,6 +37,7 @@ import numpy as np
 import bonecad
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tibia"
+FEMURS = DATA.parent / "femur"
 
 
 def reread(path: Path) -> str:
@@ -83,8 +90,9 @@ def reference_workload_s() -> float:
     return best
 
 
-def command(path: Path, repeats: int) -> None:
-    """Wall and CPU time of ``bonecad reconstruct`` in a new process, ``repeats`` times."""
+def command(path: Path, repeats: int) -> float:
+    """Wall and CPU time of ``bonecad reconstruct`` in a new process, ``repeats`` times; returns the median
+    CPU time (s)."""
     walls, cpus = [], []
     before = reference_workload_s()
     for _ in range(repeats):
@@ -101,14 +109,16 @@ def command(path: Path, repeats: int) -> None:
           f"{', '.join(f'{w:.1f}' for w in walls)} s, median {statistics.median(walls):.1f} s "
           f"(target <= 20 s for TLEM2); CPU {statistics.median(cpus):.1f} s (median, both cores); "
           f"reference workload {before:.3f} s before, {after:.3f} s after (lower: a faster host)")
+    return statistics.median(cpus)
 
 
-def run(path: Path) -> None:
+def run(path: Path) -> int:
+    """One run in this process, its figures printed; returns the bone's triangles (after intake)."""
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()
         result = bonecad.reconstruct(path, out)
         total = time.perf_counter() - start
-        print(f"\n{path.name}: {result.bone.triangle_count} triangles, {result.frame.side} tibia, "
+        print(f"\n{path.name}: {result.bone.triangle_count} triangles, {result.frame.side} {result.frame.bone}, "
               f"mesh volume {result.bone.to_trimesh().volume:.0f} mm^3")
         for stage, seconds in result.timings_s.items():
             print(f"  {stage:<32} {seconds:7.2f} s")
@@ -124,12 +134,33 @@ def run(path: Path) -> None:
     child_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     print(f"  peak memory so far: {peak_mb:.0f} MB + {child_mb:.0f} MB in background children "
           f"(target <= 2048 MB together)", flush=True)
+    return result.bone.triangle_count
+
+
+def femurs(names: list[str], repeats: int) -> None:
+    """Each femur, and its CPU time per triangle (of the bone kept by the intake) against its own subject's
+    tibia's."""
+    for femur in sorted(FEMURS.glob("*.stl")):
+        subject = femur.stem.split("_femur")[0]
+        if names and subject not in names:
+            continue
+        tibia = DATA / femur.name.replace("femur", "tibia")
+        cpu = {}
+        for path in (femur, tibia):
+            seconds = command(path, repeats)
+            cpu[path] = seconds / run(path)
+        ratio = cpu[femur] / cpu[tibia]
+        print(f"\n{subject}: reconstruct CPU per 1000 triangles: femur {1000 * cpu[femur]:.3f} s, tibia "
+              f"{1000 * cpu[tibia]:.3f} s, ratio {ratio:.2f} (target <= 1.5)", flush=True)
 
 
 def main(args: list[str]) -> None:
     repeats = 3
     if args[:1] == ["--repeats"]:
         repeats, args = int(args[1]), args[2:]
+    if args[:1] == ["femurs"]:
+        femurs(args[1:], repeats)
+        return
     if args == ["all"]:
         paths = sorted(DATA.glob("*.stl"))
     else:

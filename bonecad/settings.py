@@ -28,6 +28,8 @@ ApexFill = Literal["ring", "patch"]
 Joins = Literal["G1", "C0"]
 FaceLayout = Literal["tube", "blocks", "elements", "panels"]
 ModelName = Literal["nurbs", "tspline"]
+BoneChoice = Literal["auto", "tibia", "femur"]
+BONES = ("tibia", "femur")
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,25 @@ class MorphometrySettings:
     plafond_facing_deg: float
     distal_zone_mm: float
     malleolus_depth_mm: float
+class FemurSettings:
+    """The femur's frame: its length (mm); the head's search (share of the length from the narrow end),
+    radius range, Hough bin, inlier band (mm), least sphere coverage and least offset from the long axis
+    (mm); the knee centre's search (share of the length); the condyles' search height (mm); flare ratios
+    and region boundaries as [anatomy]'s."""
+
+    length_mm: tuple[float, float]
+    head_search_share: float
+    head_radius_mm: tuple[float, float]
+    head_vote_bin_mm: float
+    head_inlier_mm: float
+    head_min_coverage: float
+    head_min_offset_mm: float
+    knee_search_share: float
+    condyle_search_mm: float
+    distal_flare_ratio: float
+    proximal_flare_ratio: float
+    distal_boundary_mm: float
+    proximal_boundary_mm: float
 
 
 @dataclass(frozen=True)
@@ -191,10 +212,12 @@ class PatchSettings:
 
 @dataclass(frozen=True)
 class PipelineSettings:
-    """The runner: which models to build, whether independent stages run on the second core."""
+    """The runner: which models to build, whether independent stages run on the second core, which bone
+    (a profile of data/bones, or "auto": recognised)."""
 
     models: tuple[ModelName, ...]
     background_jobs: bool
+    bone: BoneChoice
 
 
 @dataclass(frozen=True)
@@ -220,6 +243,7 @@ class Settings:
     mesh: MeshSettings
     anatomy: AnatomySettings
     morphometry: MorphometrySettings
+    femur: FemurSettings
     curves: CurvesSettings
     nurbs: NurbsSettings
     tspline: TSplineSettings
@@ -244,6 +268,12 @@ class Settings:
             tree = _merged(tree, {k: dict(v) for k, v in overrides.items() if v}, path)
         return _build(cls, tree, "", path)
 
+    def for_bone(self, profile: BoneProfile) -> Settings:
+        """These settings with the bone profile's own values (its [settings] table) laid over them."""
+        if not profile.settings:
+            return self
+        return Settings.load(overrides=_merged(self.to_dict(), profile.settings, profile.name))
+
     def replace(self, section: str, **values: Any) -> Settings:
         """A copy with some values of one section changed (checked like a file's)."""
         return Settings.load(overrides={**self.to_dict(), section: values}) if values else self
@@ -252,6 +282,37 @@ class Settings:
         """The settings as the TOML layout (tuples as lists)."""
         return {name: {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(section).items()}
                 for name, section in ((f.name, getattr(self, f.name)) for f in dataclasses.fields(self))}
+
+
+@dataclass(frozen=True)
+class BoneProfile:
+    """What differs per bone (``data/bones/<name>.toml``): how to recognise it and its ends, the frame
+    strategy and its centreline, the side rule, the regions' names, and settings of its own."""
+
+    name: str
+    description: str
+    wider_end: Literal["proximal", "distal"]
+    narrow_end: str
+    frame: Literal["tibia", "femur"]
+    centreline: Literal["straight", "curved"]
+    side_rule: str
+    regions: Mapping[str, str]
+    settings: Mapping[str, Any]
+
+
+def load_profile(name: str) -> BoneProfile:
+    """The profile of a bone (one of ``BONES``)."""
+    if name not in BONES:
+        raise InputError(f"no bone profile {name!r}; the profiles are {list(BONES)}")
+    data = tomllib.loads(resources.files("bonecad").joinpath(f"data/bones/{name}.toml").read_text())
+    recognise, frame = data["recognise"], data["frame"]
+    return BoneProfile(
+        name=data["name"], description=data["description"],
+        wider_end=_typed(recognise["wider_end"], Literal["proximal", "distal"], f"{name}.wider_end", None),
+        narrow_end=recognise["narrow_end"],
+        frame=_typed(frame["strategy"], Literal["tibia", "femur"], f"{name}.strategy", None),
+        centreline=_typed(frame["centreline"], Literal["straight", "curved"], f"{name}.centreline", None),
+        side_rule=frame["side_rule"], regions=dict(data["regions"]), settings=dict(data.get("settings", {})))
 
 
 def _read_defaults() -> dict[str, Any]:

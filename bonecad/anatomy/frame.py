@@ -19,6 +19,7 @@ from bonecad.mesh.sampling import triangle_areas
 from bonecad.settings import AnatomySettings, UnitsSettings
 from bonecad.mesh.sections import plane_basis, section_mesh, section_stack
 from bonecad.anatomy.ellipse import fit_ellipse
+from bonecad.anatomy.landmarks import FemurLandmarks
 
 # Cut ends: the share of an end's section area covered by faces within this
 # angle of the axis that makes the end a flat saw cut rather than a joint.
@@ -60,6 +61,10 @@ class AnatomicalFrame:
     distal_boundary_mm: float  # height of the distal/shaft boundary above the origin
     proximal_boundary_mm: float  # height of the shaft/proximal boundary above the origin
     bone_extent_mm: np.ndarray  # (2,) lowest and highest height of the bone along z
+    bone: str = "tibia"  # the bone profile ("tibia" | "femur")
+    # a femur's own landmarks; its frame reuses the tibia's fields: plafond_centre and origin are the
+    # knee centre, plateau_centre the head centre, plateau the condyles' widest section
+    femur: FemurLandmarks | None = None
 
     @property
     def lateral(self) -> np.ndarray:
@@ -98,6 +103,20 @@ class AnatomicalFrame:
 
     def as_dict(self) -> dict:
         """JSON-ready description, every entity in scanner coordinates (mm)."""
+        tibia = self._tibia_dict()
+        if self.femur is None:
+            return tibia
+        axis = tibia.pop("mechanical_axis")
+        axis["start_knee_centre"] = axis.pop("start_plafond_centre")
+        axis["end_head_centre"] = axis.pop("end_plateau_centre")
+        direction = self.plateau_centre - self.plafond_centre
+        axis["direction"] = np.round(direction / np.linalg.norm(direction), 6).tolist()
+        tibia["bone_frame"]["proximal_is"] = "the anatomical (shaft) axis"
+        condyles = tibia.pop("plateau_ellipse")
+        return {"bone": self.bone, **tibia, "mechanical_axis": axis, "condyle_ellipse": condyles,
+                **self.femur.as_dict()}
+
+    def _tibia_dict(self) -> dict:
         r = lambda a: np.round(np.asarray(a, dtype=float), 6).tolist()  # noqa: E731
         return {
             "side": self.side,
@@ -245,7 +264,7 @@ def anatomical_frame(
     z = axis
     for _ in range(3):  # refine: plateau and plafond are sought perpendicular to the current axis
         plateau = _plateau(vertices, faces, centre, z, heights, hi, length, anat)
-        plafond_centre = _plafond_centre(vertices, faces, centre, z, heights, lo, length, anat)
+        plafond_centre = _plafond_centre(vertices, faces, centre, z, heights, lo, length, anat.plafond_search_share)
         plateau_centre = plateau.centre
         new_z = plateau_centre - plafond_centre
         new_z /= np.linalg.norm(new_z)
@@ -326,11 +345,12 @@ def _plateau(vertices, faces, centre, z, heights, hi, length, anat) -> PlateauEl
     return PlateauEllipse(point, ellipse.semi_axes, major, ellipse.rms_residual_mm, 0.0)
 
 
-def _plafond_centre(vertices, faces, centre, z, heights, lo, length, anat) -> np.ndarray:
-    """Centroid of distal cross-sections just above the distal articular surface."""
+def _plafond_centre(vertices, faces, centre, z, heights, lo, length, search_share: float) -> np.ndarray:
+    """Centroid of distal cross-sections just above the distal articular surface (searched within
+    ``search_share`` of the length from the distal end)."""
     normals, areas = _unit_normals(vertices, faces)
     face_h = heights[faces].mean(axis=1)
-    search = lo + anat.plafond_search_share * length
+    search = lo + search_share * length
     facing = (face_h < search) & (normals @ -z > 0.7)
     if areas[facing].sum() <= 0:
         raise FitError("no distal articular surface found (no distal-facing faces near the distal end)")

@@ -46,9 +46,21 @@ def frame_entities(frame, plane_size_mm: float = 120.0) -> list[tuple[str, objec
     z = frame.proximal
     mid = 0.5 * (frame.plateau_centre + frame.plafond_centre)
     along = 1.1 * frame.mechanical_length_mm  # the L-M and A-P planes contain the axis and run along it
-    return [
-        ("plateau_centre", point(frame.plateau_centre)),
-        ("plafond_centre", point(frame.plafond_centre)),
+    femur = frame.femur
+    femur_entities = [] if femur is None else [
+        ("neck_axis", line(femur.neck_axis[1], femur.neck_axis[0])),
+        ("medial_condyle_centre", point(femur.condyle_centres[0])),
+        ("lateral_condyle_centre", point(femur.condyle_centres[1])),
+        ("transepicondylar_axis", line(femur.epicondyles[0], femur.epicondyles[1])),
+        ("anatomical_axis", line(femur.shaft_axis[0], femur.shaft_axis[1])),
+        *((f"isb_{name}", line(femur.head.centre, femur.head.centre + 30.0 * axis))
+          for name, axis in zip(("x_anterior", "y_proximal", "z_right"), femur.isb_axes)),
+    ]
+    # a femur's frame holds its head centre and knee centre where a tibia's holds these two
+    upper, lower = ("head_centre", "knee_centre") if femur is not None else ("plateau_centre", "plafond_centre")
+    return femur_entities + [
+        (upper, point(frame.plateau_centre)),
+        (lower, point(frame.plafond_centre)),
         ("distal_apex", point(frame.distal_apex)),
         ("proximal_apex", point(frame.proximal_apex)),
         ("mechanical_axis", line(frame.plafond_centre, frame.plateau_centre)),

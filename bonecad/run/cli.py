@@ -51,6 +51,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, help="TOML file overriding defaults (angles, counts, tolerances)")
     p.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
                    help="units of the input mesh (default: auto, which accepts mm and names the unit otherwise)")
+    p.add_argument("--bone", choices=["auto", "tibia", "femur"], default=None,
+                   help="which bone the input is (default: auto, recognised: a femur has a head at its narrow end)")
     _add_logging(p)
 
 
@@ -194,12 +196,15 @@ def _setup_logging(args: argparse.Namespace) -> None:
 def _print_inspect(summary: dict) -> None:
     print(f"file        {summary['file']}")
     print(f"units       {summary['units']} (detected)")
-    print(f"triangles   {summary['triangles']} (tibia, after cleanup)")
+    femur = summary.get("bone") == "femur"
+    print(f"triangles   {summary['triangles']} ({summary.get('bone', 'tibia')}, after cleanup)")
     print(f"watertight  {'yes' if summary['watertight'] else 'no'}")
-    print(f"side        {summary['side']} (from the anatomy: medial malleolus, tuberosity)")
-    print(f"axis length {summary['mechanical_axis_length_mm']} mm (plateau centre to plafond centre)")
+    cue = "the head is medial" if femur else "medial malleolus, tuberosity"
+    print(f"side        {summary['side']} (from the anatomy: {cue})")
+    ends = "knee centre to head centre" if femur else "plateau centre to plafond centre"
+    print(f"axis length {summary['mechanical_axis_length_mm']} mm ({ends})")
     semi_axes = summary['plateau_semi_axes_mm']
-    print(f"plateau     ellipse semi-axes {semi_axes[0]} x {semi_axes[1]} mm")
+    print(f"{'condyles' if femur else 'plateau':<11} ellipse semi-axes {semi_axes[0]} x {semi_axes[1]} mm")
     print("bodies")
     for b in summary["bodies"]:
         kept = "kept" if b["role"] == "tibia" else "dropped"
@@ -261,7 +266,8 @@ def settings_of(args: argparse.Namespace):
                     "proximal_boundary_mm": getattr(args, "proximal_boundary", None)},
         "nurbs": {"apex_fill": getattr(args, "apex_fill", None)},
         "tspline": {"compare_tensor_product": getattr(args, "compare_tensor_product", None)},
-        "pipeline": {"models": None if getattr(args, "model", None) in (None, "both") else [args.model]},
+        "pipeline": {"models": None if getattr(args, "model", None) in (None, "both") else [args.model],
+                     "bone": getattr(args, "bone", None)},
         "cohort": {"workers": getattr(args, "workers", None), "timeout_s": getattr(args, "timeout", None)},
     }
     if getattr(args, "model", None) == "both":
@@ -294,7 +300,8 @@ def _run(args: argparse.Namespace) -> int:
             result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units,
                                           progress=progress)
         _print_result(result)
-        print(f"{result.frame.side} tibia; {len(result.files)} files written to {args.out} ({result.wall_s:.1f} s)")
+        print(f"{result.frame.side} {result.frame.bone}; {len(result.files)} files written to {args.out} "
+              f"({result.wall_s:.1f} s)")
     elif args.command == "measure":
         doc = pipeline.run_measure(args.input, settings, units=args.units, out=args.out)
         _print_measurements(doc)

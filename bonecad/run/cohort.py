@@ -39,10 +39,11 @@ from typing import Any, Literal, cast
 import numpy as np
 
 from bonecad._version import __version__
-from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
+from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.anatomy.morphometry import measure_tibia
 from bonecad.errors import InputError
 from bonecad.mesh.intake import MESH_SUFFIXES, Units
+from bonecad.run.bones import bone_frame, bone_settings
 from bonecad.run.cluster import DaskExecutor
 from bonecad.run.executor import Executor
 from bonecad.run.pipeline import VOLUME_SUFFIXES, load_input
@@ -130,7 +131,10 @@ def _bone_results(source: BoneSource, settings: Settings
                   ) -> tuple[str, dict[str, float], dict[str, float], np.ndarray | None]:
     """One bone's side, parameters, fit figures and template control points (None: no template fitted)."""
     bone = load_input(source.path, settings, units=source.units)
-    frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+    settings = bone_settings(bone, settings)
+    frame = bone_frame(bone, settings)
+    if frame.bone != "tibia":
+        raise InputError(f"a cohort of tibias (measure, template); this is a {frame.bone}", source.path)
     if source.side is not None and source.side != frame.side:
         raise InputError(f"the manifest says a {source.side} tibia; the anatomy (medial malleolus, tuberosity) "
                          f"says {frame.side}", source.path)

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterator, Mapping
 import numpy as np
 
 from bonecad.analysis.model import ModelReport, model_continuity, model_deviation, tessellate_model
-from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
+from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.anatomy.morphometry import measure_tibia
 from bonecad.contours.curves import ContourSet, bone_coordinates, contour_curves
 from bonecad.errors import InputError
@@ -41,6 +41,7 @@ from bonecad.export.viewer import ViewMesh, input_view, model_view, viewer_html
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
 from bonecad.mesh.working import with_working_copy
+from bonecad.run.bones import bone_frame, bone_settings
 from bonecad.run.executor import Executor, InProcess, executor_for
 from bonecad.settings import Settings
 from bonecad.splines.tspline.fit import FitStats
@@ -166,8 +167,9 @@ def run_segment(path: str | Path, out_mesh: str | Path, settings: Settings) -> B
 def inspect(path: str | Path, settings: Settings, *, units: Units = "auto") -> dict:
     """What ``bonecad inspect`` prints: the input summary, the tibia's side and frame figures."""
     bone = load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
-    frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+    frame = bone_frame(bone, settings)
     summary = bone.summary()
+    summary["bone"] = frame.bone
     summary["side"] = frame.side
     summary["mechanical_axis_length_mm"] = round(frame.mechanical_length_mm, 2)
     summary["plateau_semi_axes_mm"] = np.round(frame.plateau.semi_axes_mm, 2).tolist()
@@ -183,7 +185,10 @@ def run_measure(source: str | Path, settings: Settings, *, units: Units = "auto"
     if out is not None:
         check_measurements_path(out)  # before the work
     bone = load_input(source, settings, units=units)
-    frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+    settings = bone_settings(bone, settings)
+    frame = bone_frame(bone, settings)
+    if frame.bone != "tibia":
+        raise InputError(f"bonecad measure measures tibias; this is a {frame.bone}", source)
     doc = MeasurementsDocument(str(source), measure_tibia(bone, frame, settings.morphometry))
     if out is not None:
         write_measurements(doc, out)
@@ -216,6 +221,7 @@ def reconstruct_bone(
     if until == "models" and not models:
         raise InputError("no model to build: [pipeline] models is empty")
     timings = timings if timings is not None else Timings()
+    settings = bone_settings(bone, settings)  # the bone's profile: recognised when --bone is auto
     ex = executor if executor is not None else executor_for(settings.pipeline.background_jobs)
     out_dir = Path(out_dir)
     with staged_output(out_dir) as stage_dir, ex:
@@ -223,7 +229,7 @@ def reconstruct_bone(
             export("bone", bone, stage_dir)
         if until == "frame":
             with timings.stage("anatomical frame"):
-                frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+                frame = bone_frame(bone, settings)
             frame_doc = FrameDocument(bone.summary(), frame)
             with timings.stage("reference entities to STEP"):
                 export("frame", frame_doc, stage_dir, only=["step"])
@@ -253,7 +259,7 @@ def frame_and_contours(bone: BoneMesh, settings: Settings
     Returns them with their stage times (s)."""
     timings = Timings()
     with timings.stage("anatomical frame"):
-        frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+        frame = bone_frame(bone, settings)
     with timings.stage("contour curves"):
         contours = contour_curves(bone, frame, settings=settings.curves)
     return frame, contours, timings.seconds
@@ -300,8 +306,10 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
             views_in_order = (input_view(bone.work.vertices, bone.work.faces, deviations,
                                          settings.analysis.view_max_triangles),
                               *(views[m] for m in shown))
-        with timings.stage("morphometry"):
-            measured = measure_tibia(bone, frame, settings.morphometry).values()
+        measured = None
+        if frame.bone == "tibia":  # the parameters of ``bonecad measure`` are defined on a tibia
+            with timings.stage("morphometry"):
+                measured = measure_tibia(bone, frame, settings.morphometry).values()
         with timings.stage("report"):
             from bonecad.render.figures import histograms_png
 
