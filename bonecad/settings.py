@@ -90,6 +90,9 @@ class MorphometrySettings:
     plafond_facing_deg: float
     distal_zone_mm: float
     malleolus_depth_mm: float
+
+
+@dataclass(frozen=True)
 class FemurSettings:
     """The femur's frame: its length (mm); the head's search (share of the length from the narrow end),
     radius range, Hough bin, inlier band (mm), least sphere coverage and least offset from the long axis
