@@ -158,12 +158,12 @@ def test_refined_tube_sews_into_a_valid_closed_solid(phantom_fitted, spots, roun
 
     from bonecad.occ.brep import faces, free_edge_count, is_valid, volume_mm3
     from bonecad.occ.tspline import tensor_product_blocks
-    from bonecad.tspline_model.model import _occ_shape, apex_caps
+    from bonecad.tspline_model.model import occ_shape, apex_caps
 
     model = phantom_fitted.model
     tube = refined(model.tspline, spots, rounds, noise_mm, seed)
     caps = apex_caps(tube, model.parameterisation, phantom_fitted.distal_points, phantom_fitted.proximal_points)
-    solid, face_names = _occ_shape(tube, caps, model.parameterisation, model.frame,
+    solid, face_names = occ_shape(tube, caps, model.parameterisation, model.frame,
                                    layout=SETTINGS.tspline.face_layout)
 
     assert solid.ShapeType() == TopAbs_SOLID and is_valid(solid)

@@ -2,7 +2,7 @@
 distal to the proximal apex ring, fitted to the whole polygonal model, with
 two quad-topology apex caps; converted to OpenCascade by Bezier extraction.
 
-Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
+Stages (each a function of numpy data; OpenCascade only in ``occ_shape``):
 
 1. parameterise and skin the three contour-curve sets on one T-mesh
    (:mod:`.skinning`);
@@ -22,6 +22,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -271,7 +272,7 @@ def build_tspline_model(
     caps = apex_caps(tube, par, vertices[hole_d], vertices[hole_p])
     timings["caps"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    shape, face_names = _occ_shape(tube, caps, par, frame, layout=st.face_layout)
+    shape, face_names = occ_shape(tube, caps, par, frame, layout=st.face_layout)
     timings["occ"] = time.perf_counter() - clock
     return TSplineModel(
         tspline=tube,
@@ -299,7 +300,13 @@ def apex_caps(tube: TSpline, par: Parameterisation, distal_points: np.ndarray,
             build_cap(tube, "proximal", proximal_points, local_dir / np.linalg.norm(local_dir)))
 
 
-def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
+class ScannerMap(Protocol):
+    """Maps bone coordinates to the output's (an AnatomicalFrame; the identity for a shape with no scan)."""
+
+    def to_scanner(self, points: np.ndarray) -> np.ndarray: ...
+
+
+def to_scanner(ts: TSpline, frame: ScannerMap) -> TSpline:
     """The same T-spline mapped to scanner coordinates (an affine map of the control points: exact)."""
     return ts.with_control_points(frame.to_scanner(ts.control_points), ts.weights)
 
@@ -307,7 +314,7 @@ def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
 FACE_LAYOUTS = ("tube", "blocks", "elements")
 
 
-def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: AnatomicalFrame, *,
+def occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: ScannerMap, *,
                layout: str) -> tuple[object, list[tuple[str, object]]]:
     """The tube's and the caps' faces (scanner coordinates), sewn into a closed, valid solid with outward faces.
 
