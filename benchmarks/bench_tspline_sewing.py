@@ -57,7 +57,7 @@ def main(targets: list[int]) -> None:
     model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
                                 apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
     vertices, _ = fit_points(bone, frame, settings.tspline)
-    distal, proximal = hole_masks(vertices, model.parameterisation, settings.curves.apex_hole_radius_mm)
+    distal, proximal = hole_masks(vertices, model.frame, settings.curves.apex_hole_radius_mm)
     reference = volume_mm3(model.shape)
     print(f"phantom model: {model.control_points} control points, {reference:.1f} mm3, "
           f"{time.perf_counter() - clock:.1f} s; each case's volume against it (the control points moved "

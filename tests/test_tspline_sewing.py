@@ -49,7 +49,7 @@ def phantom_fitted(phantom, phantom_frame, phantom_tspline_model) -> Fitted:
 
     model = phantom_tspline_model
     vertices, _ = fit_points(phantom, phantom_frame, SETTINGS.tspline)
-    distal, proximal = hole_masks(vertices, model.parameterisation, SETTINGS.curves.apex_hole_radius_mm)
+    distal, proximal = hole_masks(vertices, model.frame, SETTINGS.curves.apex_hole_radius_mm)
     return Fitted(model, vertices[distal], vertices[proximal])
 
 

@@ -153,14 +153,15 @@ def mesh_noise_mm(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSetti
     return local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=voxel_step_mm(bone.vertices))
 
 
-def hole_masks(vertices: np.ndarray, par: Parameterisation, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh vertices inside the distal and the proximal apex hole (bone coordinates)."""
-    distal = (vertices[:, 2] < par.z_distal) & (np.linalg.norm(vertices[:, :2], axis=1) < radius_mm)
-    a, b = par.local_axis
+def hole_masks(vertices: np.ndarray, frame: AnatomicalFrame, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh vertices inside the distal and the proximal apex hole (bone coordinates): within ``radius_mm`` of
+    the mechanical axis below the distal boundary, of the local proximal axis above the proximal boundary."""
+    distal = (vertices[:, 2] < frame.distal_boundary_mm) & (np.linalg.norm(vertices[:, :2], axis=1) < radius_mm)
+    a, b = frame.to_bone(frame.local_proximal_axis)
     d = (a - b) / np.linalg.norm(a - b)
     rel = vertices - a
     off = rel - np.outer(rel @ d, d)
-    proximal = (vertices[:, 2] > par.z_proximal) & (np.linalg.norm(off, axis=1) < radius_mm)
+    proximal = (vertices[:, 2] > frame.proximal_boundary_mm) & (np.linalg.norm(off, axis=1) < radius_mm)
     return distal, proximal
 
 
@@ -229,7 +230,7 @@ def build_tspline_model(
     vertices, weights = fit_points(bone, frame, st)
     par = parameterisation(contours)
     radius = apex_hole_radius_mm
-    hole_d, hole_p = hole_masks(vertices, par, radius)
+    hole_d, hole_p = hole_masks(vertices, frame, radius)
     rings = ring_constraints(contours, par, radius)
     keep = ~(hole_d | hole_p) & (weights > 0)
     pts, w = vertices[keep], weights[keep]

@@ -118,6 +118,16 @@ def to_template(par: Parameterisation, s: np.ndarray, t: np.ndarray,
             np.interp(t, own, region_bounds(settings)))
 
 
+def surface_targets(bone: BoneMesh, frame: AnatomicalFrame, settings: TemplateSettings, *,
+                    apex_hole_radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The surface the template covers, as the fit's points (bone coordinates, mm) and their area weights
+    (mm^2): the mesh's fit samples outside the two apex holes (the caps close those)."""
+    vertices, weights = fit_samples(*bone_coordinates(bone, frame), settings.fit_point_spacing_mm)
+    hole_d, hole_p = hole_masks(vertices, frame, apex_hole_radius_mm)
+    keep = ~(hole_d | hole_p) & (weights > 0)
+    return vertices[keep], weights[keep]
+
+
 def fit_template(bone: BoneMesh, frame: AnatomicalFrame, contours: ContourSet, settings: TemplateSettings, *,
                  apex_hole_radius_mm: float) -> TemplateFit:
     """Fit the template T-mesh to a tibia: skin its contour curves, then fit its surface with parameter
@@ -129,10 +139,7 @@ def fit_template(bone: BoneMesh, frame: AnatomicalFrame, contours: ContourSet, s
     st = settings
     clock = time.process_time()
     par = parameterisation(contours)
-    vertices, weights = fit_samples(*bone_coordinates(bone, frame), st.fit_point_spacing_mm)
-    hole_d, hole_p = hole_masks(vertices, par, apex_hole_radius_mm)
-    keep = ~(hole_d | hole_p) & (weights > 0)
-    pts, w = vertices[keep], weights[keep]
+    pts, w = surface_targets(bone, frame, st, apex_hole_radius_mm=apex_hole_radius_mm)
 
     data = curve_data(contours, par)
     s_c, t_c = to_template(par, data.s, data.t, st)
