@@ -150,7 +150,9 @@ def _build_model_folder(out_dir: str | Path, cohort: str | Path, settings: Setti
 
 
 def _stats(values: np.ndarray) -> dict:
-    return {"mean": round(float(np.mean(values)), 4), "max": round(float(np.max(values)), 4)}
+    """Over the bones: the RMS of their figures (each an RMS over a surface), the mean and the largest (mm)."""
+    return {"rms": round(float(np.sqrt(np.mean(np.square(values)))), 4), "mean": round(float(np.mean(values)), 4),
+            "max": round(float(np.max(values)), 4)}
 
 
 def load_model(path: str | Path) -> ShapeModel:
