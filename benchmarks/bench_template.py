@@ -38,6 +38,8 @@ DATA = ROOT.parent / "shared" / "data" / "tibia"
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--phantoms", type=int, default=4, help="varied phantoms to fit besides the default one")
+    ap.add_argument("--exclude", nargs="*", default=[], help="real meshes (file stems) to leave out, e.g. "
+                    "LHDL_CT_tibia_no_fib_r (the same tibia as LHDL_CT_tibia_r: its fibula is dropped at intake)")
     args = ap.parse_args()
     settings = Settings.load()
     print(f"template: {settings.template.s_intervals} s-intervals at the ends, {settings.template.shaft_s_intervals} "
@@ -47,7 +49,8 @@ def main() -> None:
           f"{'wall s':>7}")
     real = {}
     with threadpool_limits(limits=1, user_api="blas"):
-        cases = [(p.stem, lambda p=p: bonecad.load_bone(p)) for p in sorted(DATA.glob("*.stl"))]
+        cases = [(p.stem, lambda p=p: bonecad.load_bone(p)) for p in sorted(DATA.glob("*.stl"))
+                 if p.stem not in args.exclude]
         cases += [("phantom (default)", lambda: bonecad.phantom_tibia())]
         cases += [(f"phantom varied {i}", lambda p=p: bonecad.phantom_tibia(p))
                   for i, p in enumerate(phantom_parameters(args.phantoms, seed=7, voxel_mm=1.0))]
