@@ -2,6 +2,7 @@
 design parameters (tests/cohorts.py; built once for the module) and on the real tibias."""
 from __future__ import annotations
 
+import pickle
 from dataclasses import asdict
 
 import numpy as np
@@ -52,6 +53,10 @@ def test_one_topology_for_every_bone(cohort):
         assert fit.tspline.mesh is mesh
         assert fit.control_points.shape == (len(mesh.anchors), 3)
     assert len(t_junctions(mesh).points) > 0  # a T-mesh, not a tensor product
+    fit = next(iter(fits.values()))
+    again = pickle.loads(pickle.dumps(fit))  # the cohort's workers send fits back pickled
+    np.testing.assert_array_equal(again.control_points, fit.control_points)
+    assert again.share_within == fit.share_within
 
 
 def test_template_fits_phantoms_within_half_mm(cohort):

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -47,23 +47,28 @@ from bonecad.tspline_model.skinning import Parameterisation, curve_data, paramet
 class TemplateFit:
     """The template fitted to one tibia (bone coordinates, mm).
 
-    control_points : (n, 3), in the template's fixed order; share_within : weighted share of the
-    surface within ``within_mm``; max_mm, rms_mm : distances of the fit points; cpu_s : CPU seconds.
+    mesh : the template T-mesh; control_points : (n, 3), in the template's fixed order; share_within :
+    weighted share of the surface within ``within_mm``; max_mm, rms_mm : distances of the fit points;
+    cpu_s : CPU seconds. Pickles small (~0.4 MB: the T-spline's Bezier extraction, ~10 MB, is rebuilt on use).
     """
 
-    tspline: TSpline
+    mesh: TMesh
+    control_points: np.ndarray
     within_mm: float
     share_within: float
     max_mm: float
     rms_mm: float
     cpu_s: float
 
-    @property
-    def control_points(self) -> np.ndarray:
-        return self.tspline.control_points
+    @cached_property
+    def tspline(self) -> TSpline:
+        return TSpline(self.mesh, self.control_points, np.ones(len(self.control_points)))
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "tspline"}
 
     def summary(self) -> dict:
-        return {"control_points": self.tspline.n_control, f"share_within_{self.within_mm:g}_mm":
+        return {"control_points": len(self.control_points), f"share_within_{self.within_mm:g}_mm":
                 round(self.share_within, 5), "max_mm": round(self.max_mm, 4), "rms_mm": round(self.rms_mm, 4),
                 "cpu_s": round(self.cpu_s, 3)}
 
@@ -157,8 +162,8 @@ def fit_template(bone: BoneMesh, frame: AnatomicalFrame, contours: ContourSet, s
                         noise_factor=0.0, split_anisotropy=np.inf, mark_deficit_factor=0.0)
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=st.fit_fairness_weight,
                        corrections=st.corrections, constraints=(ring_p, ring_s, ring_t, ring_w))
-    return TemplateFit(fit.tspline, within, fit.stats.share_within, fit.stats.max_mm, fit.stats.rms_mm,
-                       time.process_time() - clock)
+    return TemplateFit(mesh, fit.tspline.control_points, within, fit.stats.share_within, fit.stats.max_mm,
+                       fit.stats.rms_mm, time.process_time() - clock)
 
 
 @dataclass(frozen=True)
