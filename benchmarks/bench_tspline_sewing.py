@@ -19,7 +19,7 @@ from bonecad.contours.curves import contour_curves
 from bonecad.occ.brep import free_edge_count, is_valid, volume_mm3
 from bonecad.settings import Settings
 from bonecad.splines.tspline import TSpline, refine_elements
-from bonecad.tspline_model.model import _occ_shape, apex_caps, build_tspline_model, fit_points, hole_masks
+from bonecad.tspline_model.model import occ_shape, apex_caps, build_tspline_model, fit_points, hole_masks
 
 #: largest share of the elements halved in a round, and the control points' random move (mm)
 SPLIT_SHARE = 0.15
@@ -57,7 +57,7 @@ def main(targets: list[int]) -> None:
     model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
                                 apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
     vertices, _ = fit_points(bone, frame, settings.tspline)
-    distal, proximal = hole_masks(vertices, model.parameterisation, settings.curves.apex_hole_radius_mm)
+    distal, proximal = hole_masks(vertices, model.frame, settings.curves.apex_hole_radius_mm)
     reference = volume_mm3(model.shape)
     print(f"phantom model: {model.control_points} control points, {reference:.1f} mm3, "
           f"{time.perf_counter() - clock:.1f} s; each case's volume against it (the control points moved "
@@ -73,7 +73,7 @@ def main(targets: list[int]) -> None:
         caps = apex_caps(tube, model.parameterisation, vertices[distal], vertices[proximal])
         t_caps = time.perf_counter() - clock
         clock = time.perf_counter()
-        solid, names = _occ_shape(tube, caps, model.parameterisation, model.frame)
+        solid, names = occ_shape(tube, caps, model.parameterisation, model.frame, settings=settings.tspline)
         t_solid = time.perf_counter() - clock
         volume = volume_mm3(solid)
         print(f"{target:7d} {tube.n_control:8d} {tube.extraction.n_elements:8d} {len(names):6d} {t_refine:8.1f} "

@@ -30,6 +30,7 @@ FaceLayout = Literal["tube", "blocks", "elements", "panels"]
 ModelName = Literal["nurbs", "tspline"]
 BoneChoice = Literal["auto", "tibia", "femur"]
 BONES = ("tibia", "femur")
+Alignment = Literal["none", "rigid", "similarity"]
 
 
 @dataclass(frozen=True)
@@ -174,6 +175,46 @@ class TSplineSettings:
 
 
 @dataclass(frozen=True)
+class TemplateSettings:
+    """The template T-mesh (one topology for every tibia): its parameter domain (template mm), knot
+    intervals per region, T-junction layout, fit controls (fairness weights, parameter corrections,
+    point spacing mm) and the figures it reports (share within mm, max and RMS mm)."""
+
+    s_period_mm: float
+    distal_length_mm: float
+    shaft_length_mm: float
+    proximal_length_mm: float
+    s_intervals: int
+    shaft_s_intervals: int
+    distal_t_intervals: int
+    shaft_t_intervals: int
+    proximal_t_intervals: int
+    apex_rows: int
+    shaft_transition_rows: int
+    fairness_weight: float
+    fit_fairness_weight: float
+    corrections: int
+    fit_point_spacing_mm: float
+    target_share_within_mm: tuple[float, float]
+    max_deviation_mm: float
+    rms_mm: float
+
+
+@dataclass(frozen=True)
+class ShapeModelSettings:
+    """The statistical shape model: Procrustes alignment ("none", "rigid", "similarity"), the ridge
+    weight of the parameter regression, the margin outside the training range a morph accepts (share
+    of the range), random samples for the specificity, their seed, surface samples per distance."""
+
+    alignment: Alignment
+    ridge: float
+    range_margin: float
+    specificity_samples: int
+    seed: int
+    surface_samples: int
+
+
+@dataclass(frozen=True)
 class AnalysisSettings:
     """Deviation histogram bands (mm), samples per direction, tessellation (mm, rad, relative),
     seam classes (gap mm, angle degrees, relative curvature jump, flat radius mm), triangles per mesh
@@ -250,6 +291,8 @@ class Settings:
     curves: CurvesSettings
     nurbs: NurbsSettings
     tspline: TSplineSettings
+    template: TemplateSettings
+    shape_model: ShapeModelSettings
     analysis: AnalysisSettings
     patch: PatchSettings
     pipeline: PipelineSettings

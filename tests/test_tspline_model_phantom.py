@@ -9,7 +9,7 @@ import pytest
 
 from bonecad.splines.tspline import check_suitability
 from bonecad.export.registry import export
-from tests.defaults import TESSELLATION, BANDS_MM
+from tests.defaults import BANDS_MM, SETTINGS, TESSELLATION
 from dataclasses import replace
 from bonecad.occ.tessellate import tessellate
 
@@ -140,7 +140,7 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
     from OCP.TopExp import TopExp_Explorer
 
     from bonecad.occ.tspline import merged_surfaces, tensor_product_blocks
-    from bonecad.tspline_model.model import _occ_shape, to_scanner
+    from bonecad.tspline_model.model import occ_shape, to_scanner
 
     patches = [model.tspline, *(c.tspline for c in model.caps)]
     n_faces = 0
@@ -162,7 +162,8 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
         assert np.abs(got - want).max() < 1e-6
     # and enclose the volume of the one-face-per-element solid
     volumes = []
-    split = _occ_shape(model.tspline, model.caps, model.parameterisation, model.frame, layout="elements")[0]
+    split = occ_shape(model.tspline, model.caps, model.parameterisation, model.frame,
+                      settings=replace(SETTINGS.tspline, face_layout="elements"))[0]
     for shape in (model.shape, split):
         props = GProp_GProps()
         BRepGProp.VolumeProperties_s(shape, props, 1e-8)

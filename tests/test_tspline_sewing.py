@@ -49,7 +49,7 @@ def phantom_fitted(phantom, phantom_frame, phantom_tspline_model) -> Fitted:
 
     model = phantom_tspline_model
     vertices, _ = fit_points(phantom, phantom_frame, SETTINGS.tspline)
-    distal, proximal = hole_masks(vertices, model.parameterisation, SETTINGS.curves.apex_hole_radius_mm)
+    distal, proximal = hole_masks(vertices, model.frame, SETTINGS.curves.apex_hole_radius_mm)
     return Fitted(model, vertices[distal], vertices[proximal])
 
 
@@ -159,13 +159,12 @@ def test_refined_tube_sews_into_a_valid_closed_solid(phantom_fitted, spots, roun
     from bonecad.occ.brep import faces, free_edge_count, is_valid, volume_mm3
     from bonecad.occ.tspline import tensor_product_blocks
     from bonecad.splines.tspline.tensor import panel_plan
-    from bonecad.tspline_model.model import _occ_shape, apex_caps
+    from bonecad.tspline_model.model import apex_caps, occ_shape
 
     model = phantom_fitted.model
     tube = refined(model.tspline, spots, rounds, noise_mm, seed)
     caps = apex_caps(tube, model.parameterisation, phantom_fitted.distal_points, phantom_fitted.proximal_points)
-    solid, face_names = _occ_shape(tube, caps, model.parameterisation, model.frame,
-                                   settings=SETTINGS.tspline)
+    solid, face_names = occ_shape(tube, caps, model.parameterisation, model.frame, settings=SETTINGS.tspline)
 
     assert solid.ShapeType() == TopAbs_SOLID and is_valid(solid)
     shells, explorer = 0, TopExp_Explorer(solid, TopAbs_SHELL)

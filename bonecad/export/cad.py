@@ -13,6 +13,7 @@ from bonecad.occ.curves import to_edge
 from bonecad.occ.exchange import frame_entities, write_iges, write_step
 from bonecad.occ.surfaces import make_face
 from bonecad.tspline_model.model import TSplineModel
+from bonecad.tspline_model.template import TemplateShape
 
 
 def _curve_tree(contours: ContourSet):
@@ -44,11 +45,11 @@ def _register_model_exporter(kind: str, fmt: str) -> None:
     write = brep.write_named_step if fmt == "step" else brep.write_named_iges
 
     @exporter(kind, fmt)
-    def model_file(model: NurbsModel | TSplineModel, out_dir: Path) -> Path:
+    def model_file(model: NurbsModel | TSplineModel | TemplateShape, out_dir: Path) -> Path:
         return write(model.shape, out_dir / f"{kind}.{fmt}", kind, list(model.face_names))
 
 
-for _kind in ("nurbs", "tspline"):
+for _kind in ("nurbs", "tspline", "morph"):
     for _fmt in ("step", "iges"):
         _register_model_exporter(_kind, _fmt)
 

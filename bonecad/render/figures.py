@@ -487,3 +487,36 @@ def zebra_png(
     _colour_panels(axes, rasters, VIEWS, [zebra_image(r, stripes=stripes) for r in rasters])
     fig.suptitle(title)
     return save_figure(fig, path)
+
+
+def shape_modes_png(
+    path: str | Path,
+    panels: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]],
+    frame: np.ndarray,
+    *,
+    title: str,
+    limit_mm: float,
+    height_px: int = 700,
+) -> Path:
+    """PNG of shaded surfaces side by side (anterior view), one per (title, vertices, triangles, per-vertex
+    signed offset from a reference, mm), coloured by the offset (red outward), on one scale in mm."""
+    from matplotlib import cm, colormaps, colors
+
+    norm = colors.Normalize(vmin=-limit_mm, vmax=limit_mm)
+    cmap = colormaps["RdBu_r"]
+    rasters = [render_mesh_values(v, f, d, frame, ("anterior",), height_px=height_px)[0] for _, v, f, d in panels]
+    ext = np.array([r.extent_mm for r in rasters])
+    fig, axes = panel_figure(rasters, height_px, extra_width_px=120)
+    for ax, raster, (name, *_rest) in zip(axes, rasters, panels):
+        rgb = cmap(norm(raster.values[..., 0]))[..., :3] * (0.45 + 0.55 * np.abs(raster.normal[..., 2]))[..., None]
+        rgb[~raster.mask] = 1.0
+        ax.imshow(rgb, extent=raster.extent_mm, interpolation="nearest")
+        ax.set_xlim(ext[:, 0].min(), ext[:, 1].max())
+        ax.set_ylim(ext[:, 2].min(), ext[:, 3].max())
+        ax.set_title(name, fontsize=9)
+        ax.set_xticks([])
+    axes[0].set_ylabel("mm (proximal up)")
+    bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), extend="both", shrink=0.8)
+    bar.set_label("offset from the mean along its normal, mm (+ = outward)")
+    fig.suptitle(title)
+    return save_figure(fig, path, palette=True)

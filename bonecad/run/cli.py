@@ -176,6 +176,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, help="TOML file overriding defaults (angles, counts, tolerances)")
     _add_logging(p)
 
+    p = sub.add_parser("shape-model", help="statistical shape model of a cohort's template control points",
+                       description="Build a shape model from a cohort folder (cohort.csv with a 'bone' column and "
+                       "parameter columns, points/<bone>.npy template control points, optional "
+                       "surface/<bone>.npz): mean, modes, compactness, leave-one-out generalisation to each "
+                       "bone's surface with two baselines, specificity; shape_model.npz, shape_model.json and "
+                       "shape_modes.png into OUT.")
+    shape_sub = p.add_subparsers(dest="shape_command", required=True, metavar="ACTION")
+    q = shape_sub.add_parser("build", help="build a shape model from a cohort folder")
+    q.add_argument("out", type=Path, help="output folder")
+    q.add_argument("--from", dest="cohort", type=Path, required=True, help="cohort folder")
+    q.add_argument("--alignment", choices=["none", "rigid", "similarity"], default=None,
+                   help="Procrustes alignment before PCA (default: [shape_model] alignment, none: the frame's)")
+    q.add_argument("--config", type=Path, help="TOML file overriding defaults")
+    _add_logging(q)
+
+    p = sub.add_parser("morph", help="a tibia from a few measurements or mode weights -> morph.step/.iges/.tsm",
+                       description="Predict a tibia with a shape model: from named parameters (any subset of the "
+                       "model's, e.g. --length 380 --plateau-width 78: a flag is a parameter's name without its "
+                       "unit suffix; values outside the training range are refused) or from mode weights in SD "
+                       "(--modes 1.0,-0.5). Writes morph.step, morph.iges, morph.tsm, morph_points.npy and "
+                       "morph.json (mode weights, predicted parameters) into --out.")
+    p.add_argument("--model", type=Path, required=True, help="shape model folder or its shape_model.npz")
+    p.add_argument("--modes", help="comma-separated mode weights in standard deviations")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--config", type=Path, help="TOML file overriding defaults")
+    _add_logging(p)
+
     p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
                        description="Generate the synthetic phantom tibia and run every stage available on it; "
                        "write phantom.stl and the stage outputs into --out.")
@@ -280,6 +307,9 @@ def _run(args: argparse.Namespace) -> int:
     """Run the command; its exit status (a failure raises)."""
     from bonecad.run import pipeline
 
+    if args.command in ("shape-model", "morph"):
+        _run_shapes(args)
+        return 0
     if args.command == "convert":
         from bonecad.run.convert import convert_tsm
 
@@ -383,6 +413,36 @@ def _run_cohort(args: argparse.Namespace, settings) -> int:
     return result.exit_status
 
 
+def _run_shapes(args: argparse.Namespace) -> None:
+    """``shape-model build`` and ``morph`` (their own options: no mesh input)."""
+    from bonecad.run import shapes
+    from bonecad.settings import Settings
+
+    alignment = getattr(args, "alignment", None)
+    settings = Settings.load(args.config, {"shape_model": {"alignment": alignment}} if alignment else None)
+    if args.command == "shape-model":
+        meta = shapes.build_model_folder(args.out, args.cohort, settings)
+        fig = meta["figures"]
+        print(f"{len(meta['bones'])} bones, {meta['modes']} modes ({meta['control_points']} control points); "
+              f"compactness {meta['compactness'][:5]}; generalisation RMS mm {fig['generalisation_rms_mm']}; "
+              f"written to {args.out}")
+        return
+    model = shapes.load_model(args.model)
+    extra = getattr(args, "extra", [])
+    if args.modes is not None and extra:
+        raise InputError("give either parameters or --modes, not both")
+    if args.modes is not None:
+        try:
+            modes = [float(x) for x in args.modes.split(",")]
+        except ValueError:
+            raise InputError(f"--modes: expected comma-separated numbers, got {args.modes!r}") from None
+        doc = shapes.run_morph(args.model, args.out, settings, modes=modes)
+    else:
+        doc = shapes.run_morph(args.model, args.out, settings, parameters=shapes.parse_parameter_flags(extra, model))
+    print(f"morph: mode weights (SD) {doc['mode_weights_sd'][:5]}...; predicted {doc['predicted_parameters']}; "
+          f"written to {args.out}")
+
+
 class Interrupted(BaseException):
     """SIGTERM, turned into an exception so every ``finally`` runs: children stopped, staging removed."""
 
@@ -393,7 +453,10 @@ def _on_sigterm(signum: int, frame: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra and args.command != "morph":
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    args.extra = extra
     _setup_logging(args)
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:

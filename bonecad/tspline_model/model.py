@@ -2,7 +2,7 @@
 distal to the proximal apex ring, fitted to the whole polygonal model, with
 two quad-topology apex caps; converted to OpenCascade by Bezier extraction.
 
-Stages (each a function of numpy data; OpenCascade only in ``_occ_shape``):
+Stages (each a function of numpy data; OpenCascade only in ``occ_shape``):
 
 1. parameterise and skin the three contour-curve sets on one T-mesh
    (:mod:`.skinning`);
@@ -22,6 +22,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -152,14 +153,15 @@ def mesh_noise_mm(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSetti
     return local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=voxel_step_mm(bone.vertices))
 
 
-def hole_masks(vertices: np.ndarray, par: Parameterisation, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh vertices inside the distal and the proximal apex hole (bone coordinates)."""
-    distal = (vertices[:, 2] < par.z_distal) & (np.linalg.norm(vertices[:, :2], axis=1) < radius_mm)
-    a, b = par.local_axis
+def hole_masks(vertices: np.ndarray, frame: AnatomicalFrame, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh vertices inside the distal and the proximal apex hole (bone coordinates): within ``radius_mm`` of
+    the mechanical axis below the distal boundary, of the local proximal axis above the proximal boundary."""
+    distal = (vertices[:, 2] < frame.distal_boundary_mm) & (np.linalg.norm(vertices[:, :2], axis=1) < radius_mm)
+    a, b = frame.to_bone(frame.local_proximal_axis)
     d = (a - b) / np.linalg.norm(a - b)
     rel = vertices - a
     off = rel - np.outer(rel @ d, d)
-    proximal = (vertices[:, 2] > par.z_proximal) & (np.linalg.norm(off, axis=1) < radius_mm)
+    proximal = (vertices[:, 2] > frame.proximal_boundary_mm) & (np.linalg.norm(off, axis=1) < radius_mm)
     return distal, proximal
 
 
@@ -228,7 +230,7 @@ def build_tspline_model(
     vertices, weights = fit_points(bone, frame, st)
     par = parameterisation(contours)
     radius = apex_hole_radius_mm
-    hole_d, hole_p = hole_masks(vertices, par, radius)
+    hole_d, hole_p = hole_masks(vertices, frame, radius)
     rings = ring_constraints(contours, par, radius)
     keep = ~(hole_d | hole_p) & (weights > 0)
     pts, w = vertices[keep], weights[keep]
@@ -271,7 +273,7 @@ def build_tspline_model(
     caps = apex_caps(tube, par, vertices[hole_d], vertices[hole_p])
     timings["caps"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    shape, face_names = _occ_shape(tube, caps, par, frame, settings=st)
+    shape, face_names = occ_shape(tube, caps, par, frame, settings=st)
     timings["occ"] = time.perf_counter() - clock
     return TSplineModel(
         tspline=tube,
@@ -299,7 +301,13 @@ def apex_caps(tube: TSpline, par: Parameterisation, distal_points: np.ndarray,
             build_cap(tube, "proximal", proximal_points, local_dir / np.linalg.norm(local_dir)))
 
 
-def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
+class ScannerMap(Protocol):
+    """Maps bone coordinates to the output's (an AnatomicalFrame; the identity for a shape with no scan)."""
+
+    def to_scanner(self, points: np.ndarray) -> np.ndarray: ...
+
+
+def to_scanner(ts: TSpline, frame: ScannerMap) -> TSpline:
     """The same T-spline mapped to scanner coordinates (an affine map of the control points: exact)."""
     return ts.with_control_points(frame.to_scanner(ts.control_points), ts.weights)
 
@@ -307,8 +315,8 @@ def to_scanner(ts: TSpline, frame: AnatomicalFrame) -> TSpline:
 FACE_LAYOUTS = ("tube", "panels", "blocks", "elements")
 
 
-def _occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: AnatomicalFrame, *,
-               settings: TSplineSettings) -> tuple[object, list[tuple[str, object]]]:
+def occ_shape(tube: TSpline, caps: tuple[ApexCap, ApexCap], par: Parameterisation, frame: ScannerMap, *,
+              settings: TSplineSettings) -> tuple[object, list[tuple[str, object]]]:
     """The tube's and the caps' faces (scanner coordinates), sewn into a closed, valid solid with outward faces.
 
     settings.face_layout : "tube": the tube as one B-spline face named "tube", exactly (its

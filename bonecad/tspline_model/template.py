@@ -1,0 +1,202 @@
+"""The template T-mesh: one T-spline topology fitted to every tibia (issue 21).
+
+Every tibia gets the same T-mesh: the same knot lines, T-junctions and
+control-point order, in one fixed parameter domain (``[template]`` settings,
+template mm). A bone's own parameterisation (:mod:`.skinning`: s the angle
+about the mechanical axis, distally, or the local proximal axis, proximally,
+from lateral towards anterior; t the meridian arc from the distal apex ring,
+the height along the shaft, the meridian arc to the proximal apex ring) is
+mapped linearly per region onto the template's: s by its period, t by each
+region's share (distal, shaft, proximal, their boundaries from the frame).
+So control point i sits on the same anatomical place on every bone.
+
+The fit is the model's (:mod:`.model`) without refinement: skin the contour
+curves on the template mesh, project the mesh points, then parameter
+corrections (projection + re-solve, ``fit_adaptive`` with no refinement
+round), with the apex rings held at their parameters.
+
+The T-mesh (the designed layout, ``template_mesh``): ``s_intervals`` s-lines
+round the ends, where the plateau rim, the malleolus and the tuberosity bend
+sharply; on the shaft only ``shaft_s_intervals`` of them continue (the
+others end in T-junctions a few rows into the shaft); t-lines uniform per
+region; next to each apex ring only every other s-line reaches the ring.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import cached_property, lru_cache
+
+import numpy as np
+
+from bonecad.anatomy.frame import AnatomicalFrame
+from bonecad.contours.curves import ContourSet, bone_coordinates
+from bonecad.errors import FitError
+from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.mesh.sampling import fit_samples
+from bonecad.occ.pickling import ShapePickling
+from bonecad.settings import TemplateSettings, TSplineSettings
+from bonecad.splines.tspline import TMesh, TSpline
+from bonecad.splines.tspline.fit import FitTolerances, fit_adaptive, initial_parameters, solve_control_points
+from bonecad.tspline_model.caps import ApexCap
+from bonecad.tspline_model.model import apex_caps, hole_masks, occ_shape, ring_constraints
+from bonecad.tspline_model.skinning import Parameterisation, curve_data, parameterisation
+
+
+@dataclass(frozen=True)
+class TemplateFit:
+    """The template fitted to one tibia (bone coordinates, mm).
+
+    mesh : the template T-mesh; control_points : (n, 3), in the template's fixed order; share_within :
+    weighted share of the surface within ``within_mm``; max_mm, rms_mm : distances of the fit points;
+    cpu_s : CPU seconds. Pickles small (~0.4 MB: the T-spline's Bezier extraction, ~10 MB, is rebuilt on use).
+    """
+
+    mesh: TMesh
+    control_points: np.ndarray
+    within_mm: float
+    share_within: float
+    max_mm: float
+    rms_mm: float
+    cpu_s: float
+
+    @cached_property
+    def tspline(self) -> TSpline:
+        return TSpline(self.mesh, self.control_points, np.ones(len(self.control_points)))
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "tspline"}
+
+    def summary(self) -> dict:
+        return {"control_points": len(self.control_points), f"share_within_{self.within_mm:g}_mm":
+                round(self.share_within, 5), "max_mm": round(self.max_mm, 4), "rms_mm": round(self.rms_mm, 4),
+                "cpu_s": round(self.cpu_s, 3)}
+
+
+def region_bounds(settings: TemplateSettings) -> np.ndarray:
+    """(4,) template t of the distal apex ring, the two region boundaries and the proximal apex ring."""
+    st = settings
+    return np.cumsum([0.0, st.distal_length_mm, st.shaft_length_mm, st.proximal_length_mm])
+
+
+@lru_cache(maxsize=4)
+def template_mesh(settings: TemplateSettings) -> TMesh:
+    """The template T-mesh (see the module docstring); the same for every bone."""
+    st = settings
+    if st.s_intervals != 2 * st.shaft_s_intervals:
+        raise FitError(f"template s_intervals ({st.s_intervals}) must be twice shaft_s_intervals "
+                       f"({st.shaft_s_intervals})")
+    bounds = region_bounds(st)
+    counts = (st.distal_t_intervals, st.shaft_t_intervals, st.proximal_t_intervals)
+    t_knots = np.concatenate([[0.0]] + [np.linspace(a, b, n + 1)[1:] for a, b, n in zip(bounds, bounds[1:], counts)])
+    mesh = TMesh.grid(np.arange(st.s_intervals) * (st.s_period_mm / st.s_intervals), t_knots,
+                      s_period=st.s_period_mm)
+    t_edges = mesh.t_edges.copy()
+    t_n = mesh.shape[1]
+    ring_rows = 3 + st.apex_rows  # t-line index where the odd s-lines end next to the rings
+    # t-line indices of the region boundaries: knots 0.. are lines 2..; boundary k is knot sum(counts[:k])
+    lo = 2 + st.distal_t_intervals + st.shaft_transition_rows
+    hi = 2 + st.distal_t_intervals + st.shaft_t_intervals - st.shaft_transition_rows
+    for i in range(1, st.s_intervals, 2):
+        t_edges[i, :ring_rows] = False
+        t_edges[i, t_n - 1 - ring_rows:] = False
+        t_edges[i, lo:hi] = False
+    out = mesh.with_edges(mesh.s_edges, t_edges)
+    out.validate()
+    return out
+
+
+def template_tspline(control_points: np.ndarray, settings: TemplateSettings) -> TSpline:
+    """The template T-spline with the given control points ((n, 3) mm, template order): a mean shape, a morph."""
+    mesh = template_mesh(settings)
+    cp = np.asarray(control_points, dtype=np.float64)
+    if cp.shape != (len(mesh.anchors), 3):
+        raise FitError(f"the template has {len(mesh.anchors)} control points, got an array of shape {cp.shape}")
+    return TSpline(mesh, cp, np.ones(len(cp)))
+
+
+def to_template(par: Parameterisation, s: np.ndarray, t: np.ndarray,
+                settings: TemplateSettings) -> tuple[np.ndarray, np.ndarray]:
+    """A bone's (s, t) (its :class:`Parameterisation`) -> the template's: s by the period, t linearly per region."""
+    own = np.array([0.0, par.t_distal, par.t_proximal, par.t_end])
+    return (np.mod(s, par.s_period) * (settings.s_period_mm / par.s_period),
+            np.interp(t, own, region_bounds(settings)))
+
+
+def surface_targets(bone: BoneMesh, frame: AnatomicalFrame, settings: TemplateSettings, *,
+                    apex_hole_radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The surface the template covers, as the fit's points (bone coordinates, mm) and their area weights
+    (mm^2): the mesh's fit samples outside the two apex holes (the caps close those)."""
+    vertices, weights = fit_samples(*bone_coordinates(bone, frame), settings.fit_point_spacing_mm)
+    hole_d, hole_p = hole_masks(vertices, frame, apex_hole_radius_mm)
+    keep = ~(hole_d | hole_p) & (weights > 0)
+    return vertices[keep], weights[keep]
+
+
+def fit_template(bone: BoneMesh, frame: AnatomicalFrame, contours: ContourSet, settings: TemplateSettings, *,
+                 apex_hole_radius_mm: float) -> TemplateFit:
+    """Fit the template T-mesh to a tibia: skin its contour curves, then fit its surface with parameter
+    correction and no refinement (see the module docstring).
+
+    contours : the bone's contour curves (``contour_curves`` with the same frame); apex_hole_radius_mm :
+    their apex hole radius. Raises FitError when the curves cannot be parameterised.
+    """
+    st = settings
+    clock = time.process_time()
+    par = parameterisation(contours)
+    pts, w = surface_targets(bone, frame, st, apex_hole_radius_mm=apex_hole_radius_mm)
+
+    data = curve_data(contours, par)
+    s_c, t_c = to_template(par, data.s, data.t, st)
+    mesh = template_mesh(st)
+    blank = TSpline(mesh, np.zeros((len(mesh.anchors), 3)), np.ones(len(mesh.anchors)))
+    ts0 = solve_control_points(blank, s_c, t_c, data.points, fairness=st.fairness_weight)
+    ring_p, ring_s, ring_t, ring_w = ring_constraints(contours, par, apex_hole_radius_mm)
+    ring_s, ring_t = to_template(par, ring_s, ring_t, st)
+
+    s0, t0, _ = initial_parameters(ts0, pts)
+    share, within = st.target_share_within_mm
+    # no refinement round (max_rounds 0): the refinement controls are never read
+    tol = FitTolerances(share_within=(share, within), max_deviation_mm=st.max_deviation_mm, rms_mm=st.rms_mm,
+                        max_control_points=ts0.n_control, max_rounds=0, min_element_mm=np.inf, mark_fraction=0.0,
+                        noise_factor=0.0, split_anisotropy=np.inf, mark_deficit_factor=0.0)
+    fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=st.fit_fairness_weight,
+                       corrections=st.corrections, constraints=(ring_p, ring_s, ring_t, ring_w))
+    return TemplateFit(mesh, fit.tspline.control_points, within, fit.stats.share_within, fit.stats.max_mm,
+                       fit.stats.rms_mm, time.process_time() - clock)
+
+
+@dataclass(frozen=True)
+class BoneCoordinates:
+    """The identity map of a shape built in bone coordinates (a mean shape, a morph): no scanner frame."""
+
+    def to_scanner(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class TemplateShape(ShapePickling):
+    """A template T-spline as a closed solid (bone coordinates, mm): the tube, its two flat apex caps,
+    the sewn OpenCascade solid and its named faces (the T-spline model's exporters write it)."""
+
+    tspline: TSpline
+    caps: tuple[ApexCap, ApexCap]
+    shape: object
+    face_names: tuple[tuple[str, object], ...]
+    frame: BoneCoordinates
+
+
+def template_shape(ts: TSpline, settings: TemplateSettings, *, faces: TSplineSettings) -> TemplateShape:
+    """The closed solid of a template T-spline (a mean shape or a morph, no mesh behind it): each apex
+    hole closed by a cap whose pole lies in the plane of its ring (the holes are a few mm wide)."""
+    bounds = region_bounds(settings)
+    ring = ts.evaluate(np.linspace(0.0, settings.s_period_mm, 64, endpoint=False), np.full(64, bounds[3])).points
+    below = ts.evaluate(np.linspace(0.0, settings.s_period_mm, 64, endpoint=False),
+                        np.full(64, bounds[3] - settings.proximal_length_mm / settings.proximal_t_intervals)).points
+    top, under = ring.mean(axis=0), below.mean(axis=0)
+    par = Parameterisation(settings.s_period_mm, bounds[1], bounds[2], bounds[3], 0.0, 0.0, np.stack([top, under]))
+    none = np.zeros((0, 3))
+    caps = apex_caps(ts, par, none, none)
+    frame = BoneCoordinates()
+    shape, names = occ_shape(ts, caps, par, frame, settings=faces)  # faces: the face layout of the model's solid
+    return TemplateShape(ts, caps, shape, tuple(names), frame)

@@ -1,0 +1,179 @@
+"""The template T-mesh, the shape model and morph (issue 21), on a synthetic cohort of phantoms with varied
+design parameters (tests/cohorts.py; built once for the module) and on the real tibias."""
+from __future__ import annotations
+
+import pickle
+from dataclasses import asdict
+
+import numpy as np
+import pytest
+
+from bonecad.run.cli import main
+from tests.cohorts import phantom_parameters, varied
+from tests.defaults import SETTINGS
+
+from .conftest import REAL_MESHES, real_mesh_params
+
+pytestmark = pytest.mark.slow
+
+#: synthetic cohort: training phantoms, plus held-out ones for the morph
+TRAINING, HELD_OUT = 12, 2
+
+
+@pytest.fixture(scope="module")
+def cohort(tmp_path_factory):
+    """(cohort folder, [(name, BoneMesh, TibiaParameters)], {name: TemplateFit}, held-out [(BoneMesh, params)])."""
+    import bonecad
+    from bonecad.run.shapes import write_cohort
+
+    params = phantom_parameters(TRAINING + HELD_OUT, seed=1)
+    bones = [(f"phantom{i:02d}", bonecad.phantom_tibia(p), p) for i, p in enumerate(params[:TRAINING])]
+    folder = tmp_path_factory.mktemp("cohort") / "cohort"
+    fits = write_cohort([(n, b, varied(p)) for n, b, p in bones], folder, SETTINGS)
+    held = [(bonecad.phantom_tibia(p), p) for p in params[TRAINING:]]
+    return folder, bones, fits, held
+
+
+@pytest.fixture(scope="module")
+def model_dir(cohort, tmp_path_factory):
+    from bonecad.run.shapes import build_model_folder
+
+    out = tmp_path_factory.mktemp("model") / "model"
+    meta = build_model_folder(out, cohort[0], SETTINGS)
+    return out, meta
+
+
+def test_one_topology_for_every_bone(cohort):
+    from bonecad.splines.tspline.suitability import t_junctions
+    from bonecad.tspline_model.template import template_mesh
+
+    _, _, fits, _ = cohort
+    mesh = template_mesh(SETTINGS.template)
+    for fit in fits.values():
+        assert fit.tspline.mesh is mesh
+        assert fit.control_points.shape == (len(mesh.anchors), 3)
+    assert len(t_junctions(mesh).points) > 0  # a T-mesh, not a tensor product
+    fit = next(iter(fits.values()))
+    again = pickle.loads(pickle.dumps(fit))  # the cohort's workers send fits back pickled
+    np.testing.assert_array_equal(again.control_points, fit.control_points)
+    assert again.share_within == fit.share_within
+
+
+def test_template_fits_phantoms_within_half_mm(cohort):
+    _, _, fits, _ = cohort
+    shares = {name: fit.share_within for name, fit in fits.items()}
+    assert min(shares.values()) >= 0.99, shares
+
+
+def _landmarks(bone, frame) -> dict[str, np.ndarray]:
+    """Landmarks found on the bone itself (bone coordinates, mm): the medial malleolus tip (the lowest
+    medial vertex below the distal boundary) and the tibial tuberosity (the most anterior vertex between
+    75 % and 92 % of the mechanical length)."""
+    v = frame.to_bone(bone.vertices)
+    medial = v[(v[:, 0] < 0) & (v[:, 2] < frame.distal_boundary_mm)]
+    length = frame.mechanical_length_mm
+    band = v[(v[:, 2] > 0.75 * length) & (v[:, 2] < 0.92 * length)]
+    return {"medial malleolus tip": medial[np.argmin(medial[:, 2])],
+            "tibial tuberosity": band[np.argmax(band[:, 1])]}
+
+
+def test_landmarks_map_to_one_template_place(cohort):
+    """For each landmark: its template parameters on each bone's own fit (the closest point), evaluated on
+    the mean shape; the points agree within 3 mm (largest distance from their centroid). The plateau and
+    plafond centres lie in the apex holes, where every bone's template ends in the same ring: there the
+    test is that the ring's centre lies within 3 mm of the landmark on every bone."""
+    import bonecad
+    from bonecad.splines.tspline.fit import initial_parameters
+    from bonecad.tspline_model.template import region_bounds, template_tspline
+
+    _, bones, fits, _ = cohort
+    mean = template_tspline(np.mean([f.control_points for f in fits.values()], axis=0), SETTINGS.template)
+    on_mean: dict[str, list[np.ndarray]] = {}
+    bounds = region_bounds(SETTINGS.template)
+    s_ring = np.linspace(0.0, SETTINGS.template.s_period_mm, 64, endpoint=False)
+    for name, bone, _ in bones:
+        frame = bonecad.anatomical_frame(bone)
+        ts = fits[name].tspline
+        for label, point in _landmarks(bone, frame).items():
+            s, t, _ = initial_parameters(ts, point[None])
+            on_mean.setdefault(label, []).append(mean.evaluate(s, t).points[0])
+        for label, point, t_ring in (("plafond centre", frame.to_bone(frame.plafond_centre), bounds[0]),
+                                     ("plateau centre", frame.to_bone(frame.plateau_centre), bounds[3])):
+            centre = ts.evaluate(s_ring, np.full(64, t_ring)).points.mean(axis=0)
+            assert np.linalg.norm(centre - point) < 3.0, (name, label)
+    for label, points in on_mean.items():
+        p = np.array(points)
+        spread = np.linalg.norm(p - p.mean(axis=0), axis=1).max()
+        assert spread < 3.0, (label, spread)
+
+
+def test_generalisation_with_five_modes_below_half_mm(model_dir):
+    """Leave-one-out with 5 modes: the RMS over the held-out bones of their surfaces' RMS distance (mm)."""
+    _, meta = model_dir
+    figures = meta["figures"]
+    assert figures["generalisation_rms_mm"]["5"]["rms"] < 0.5, figures
+    # and the model beats both baselines
+    assert figures["generalisation_rms_mm"]["5"]["mean"] < figures["baseline_scaled_mean_rms_mm"]["mean"]
+    assert figures["specificity_5_modes_rms_mm"]["mean"] > 0
+
+
+def test_shape_model_saves_and_loads(model_dir, cohort):
+    from bonecad.run.shapes import load_model
+
+    model = load_model(model_dir[0])
+    assert len(model.bones) == TRAINING
+    assert set(model.parameter_names) == set(varied(cohort[1][0][2]))
+    assert np.all(np.diff(model.compactness()) >= 0) and model.compactness()[-1] == pytest.approx(1.0)
+    # the training weights rebuild each training shape exactly
+    np.testing.assert_allclose(model.shape(model.weights[0]), cohort[2][model.bones[0]].control_points, atol=1e-6)
+
+
+def test_morph_from_design_parameters_reproduces_held_out_phantoms(model_dir, cohort):
+    """Morph from the held-out phantoms' design parameters; RMS distance of their meshes from the morph."""
+    from bonecad.analysis.shape_model import morph_weights, surface_distance_mm
+    from bonecad.run.shapes import load_model, template_fit_bone
+
+    model = load_model(model_dir[0])
+    for bone, params in cohort[3]:
+        _, points, weights = template_fit_bone(bone, SETTINGS)
+        cp = model.shape(morph_weights(model, varied(params), SETTINGS.shape_model))
+        rms = surface_distance_mm(cp, SETTINGS.template, points, weights)
+        assert rms < 1.0, (asdict(params), rms)
+
+
+def test_morph_command_writes_cad_files(model_dir, tmp_path, capsys):
+    out = tmp_path / "morph"
+    assert main(["morph", "--model", str(model_dir[0]), "--length", "370", "--plateau-width", "76",
+                 "--out", str(out), "-q"]) == 0
+    assert {p.name for p in out.iterdir()} >= {"morph.step", "morph.iges", "morph.tsm", "morph.json",
+                                               "morph_points.npy"}
+    assert main(["morph", "--model", str(model_dir[0]), "--modes", "1.0,-0.5", "--out", str(tmp_path / "m2"),
+                 "-q"]) == 0
+    assert (tmp_path / "m2" / "morph.step").stat().st_size > 0
+
+
+@pytest.mark.parametrize("flags, words", [
+    (["--length", "600"], ["length_mm", "600", "range"]),
+    (["--plateau-width", "40"], ["plateau_width_mm", "range"]),
+    (["--tibial-width", "40"], ["--tibial-width", "--length"]),
+])
+def test_morph_refuses_out_of_range_or_unknown_parameters(model_dir, tmp_path, capsys, flags, words):
+    out = tmp_path / "morph"
+    assert main(["morph", "--model", str(model_dir[0]), *flags, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert all(w in err for w in words), err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("path", [p for p in real_mesh_params()
+                                  if p.values[0] is None or "JIA" not in p.values[0].name] + [
+    pytest.param(p, id=p.stem, marks=pytest.mark.xfail(
+        strict=True, reason="JIA is a 1 mm voxel staircase: its steps lie up to 0.7 mm from any smooth surface "
+                            "through them; the template reaches 95 % within 0.5 mm"))
+    for p in REAL_MESHES if "JIA" in p.name])
+def test_template_fits_real_tibias_within_half_mm(path):
+    import bonecad
+    from bonecad.run.shapes import template_fit_bone
+
+    fit, _, _ = template_fit_bone(bonecad.load_bone(path), SETTINGS)
+    assert fit.share_within >= 0.99, fit.summary()
