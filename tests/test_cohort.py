@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import psutil
+import numpy as np
 import pytest
 
 from bonecad.errors import InputError
@@ -92,6 +93,23 @@ def test_every_good_bone_is_done(manifest_run):
     assert set(PARAMETER_NAMES) <= set(rows[0])
     for r in phantoms:
         assert 60.0 < r.parameters["plateau_width_mm"] < 95.0
+    # the template fit: every done bone's control points, in the template's one layout, the fit's figures
+    done = [r for r in result.records if r.status == "done"]
+    points = [np.load(out / "points" / f"{r.bone_id}.npy") for r in done]
+    assert len({p.shape for p in points}) == 1 and points[0].shape[1] == 3
+    assert all(r.figures["fit_share_within"] >= 0.99 for r in phantoms), [r.figures for r in phantoms]
+
+
+def test_a_shape_model_is_built_from_the_cohort_folder(manifest_run, tmp_path):
+    """``bonecad shape-model build --from OUT`` reads the cohort's table (its "id" column, its done bones, the
+    measure parameters; not its bookkeeping columns) and points."""
+    from bonecad.run.shapes import build_model_folder, load_model
+
+    result, out, _, settings = manifest_run
+    doc = build_model_folder(tmp_path / "model", out, settings, figures=False)
+    model = load_model(tmp_path / "model")
+    assert doc["figures"]["bones"] == result.count("done") == len(model.bones)
+    assert "length_mm" in model.parameter_names and not {"cpu_s", "wall_s"} & set(model.parameter_names)
     doc = json.loads((out / "cohort.json").read_text())
     assert doc["bones"] == len(result.records) and doc["settings"]["cohort"]["workers"] == 2
     assert {"bonecad", "dask", "distributed", "numpy"} <= set(doc["versions"])

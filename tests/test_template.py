@@ -2,6 +2,7 @@
 design parameters (tests/cohorts.py; built once for the module) and on the real tibias."""
 from __future__ import annotations
 
+import json
 import pickle
 from dataclasses import asdict
 
@@ -147,6 +148,15 @@ def test_morph_command_writes_cad_files(model_dir, tmp_path, capsys):
                  "--out", str(out), "-q"]) == 0
     assert {p.name for p in out.iterdir()} >= {"morph.step", "morph.iges", "morph.tsm", "morph.json",
                                                "morph_points.npy"}
+    # measured back on the morph's solid by ``bonecad measure``: the length and plateau width asked for, in
+    # the measure's definitions (the cohort's table holds the phantoms' design parameters: a phantom of design
+    # length 370 mm is 372.0 mm from plateau centre to plafond centre)
+    from bonecad.imaging.phantom_tibia import TibiaParameters, design_measurements
+
+    measured = json.loads((out / "morph.json").read_text())["measured_parameters"]
+    asked = design_measurements(TibiaParameters(length_mm=370.0, plateau_width_mm=76.0), SETTINGS.morphometry)
+    for name in ("length_mm", "plateau_width_mm"):
+        assert measured[name] == pytest.approx(asked[name], abs=2.0), (name, measured[name], asked[name])
     assert main(["morph", "--model", str(model_dir[0]), "--modes", "1.0,-0.5", "--out", str(tmp_path / "m2"),
                  "-q"]) == 0
     assert (tmp_path / "m2" / "morph.step").stat().st_size > 0

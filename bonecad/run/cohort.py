@@ -45,6 +45,7 @@ from bonecad.errors import InputError
 from bonecad.mesh.intake import MESH_SUFFIXES, Units
 from bonecad.run.bones import bone_frame, bone_settings
 from bonecad.run.cluster import DaskExecutor
+from bonecad.run.shapes import fit_figures, template_fit_bone
 from bonecad.run.executor import Executor
 from bonecad.run.pipeline import VOLUME_SUFFIXES, load_input
 from bonecad.settings import Settings
@@ -124,7 +125,7 @@ def frame_parameters(frame: AnatomicalFrame) -> dict[str, float]:
 
 def frame_figures(frame: AnatomicalFrame) -> dict[str, float]:
     """How well the frame's fits hold (mm): the plateau ellipse's RMS residual."""
-    return {"plateau_ellipse_rms_mm": float(frame.plateau.rms_residual_mm)}
+    return {"fit_plateau_ellipse_rms_mm": float(frame.plateau.rms_residual_mm)}
 
 
 def _bone_results(source: BoneSource, settings: Settings
@@ -139,7 +140,9 @@ def _bone_results(source: BoneSource, settings: Settings
         raise InputError(f"the manifest says a {source.side} tibia; the anatomy (medial malleolus, tuberosity) "
                          f"says {frame.side}", source.path)
     measured = measure_tibia(bone, frame, settings.morphometry).values()
-    return frame.side, {**measured, **frame_parameters(frame)}, frame_figures(frame), None
+    fit, _, _ = template_fit_bone(bone, settings, frame=frame)
+    return frame.side, {**measured, **frame_parameters(frame)}, {**frame_figures(frame), **fit_figures(fit)}, \
+        fit.control_points
 
 
 def cohort_job(source: BoneSource, settings: Settings) -> BoneRecord:

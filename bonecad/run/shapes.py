@@ -28,7 +28,8 @@ from bonecad.analysis.shape_model import (ShapeModel, baselines_mm, build_shape_
                                           grid_points, grid_triangles, held_surface, morph_weights, normal_offsets,
                                           predict_parameters,
                                           specificity_mm)
-from bonecad.anatomy.frame import anatomical_frame
+from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
+from bonecad.anatomy.morphometry import measure_tibia
 from bonecad.contours.curves import contour_curves
 from bonecad.errors import InputError
 from bonecad.mesh.bone_mesh import BoneMesh
@@ -39,22 +40,33 @@ from bonecad.tspline_model.template import TemplateFit, fit_template, surface_ta
 log = logging.getLogger(__name__)
 
 MODEL_FILE, META_FILE = "shape_model.npz", "shape_model.json"
+#: columns of a cohort table that are not shape parameters (``bonecad cohort``'s bookkeeping)
+_NOT_PARAMETERS = frozenset({"bone", "id", "path", "status", "error", "side", "cpu_s", "wall_s", "worker"})
 #: numbers of modes the generalisation is reported for
 GENERALISATION_MODES = (1, 2, 3, 5, 10)
 
 
-def template_fit_bone(bone: BoneMesh, settings: Settings) -> tuple[TemplateFit, np.ndarray, np.ndarray]:
-    """Frame, contour curves and template fit of one bone: (fit, surface points (m, 3), their weights).
+def template_fit_bone(bone: BoneMesh, settings: Settings, *, frame: AnatomicalFrame | None = None
+                      ) -> tuple[TemplateFit, np.ndarray, np.ndarray]:
+    """Frame (unless given), contour curves and template fit of one bone: (fit, surface points (m, 3), their
+    weights).
 
     One BLAS thread: the curve fits' many small dense solves cost ~4x the CPU time with a thread pool
     (phantom: 4.1 s against 15.7 s on the shared 2-core machine)."""
     with threadpool_limits(limits=1, user_api="blas"):
-        frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+        if frame is None:
+            frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
         contours = contour_curves(bone, frame, settings=settings.curves)
         radius = settings.curves.apex_hole_radius_mm
         fit = fit_template(bone, frame, contours, settings.template, apex_hole_radius_mm=radius)
         points, weights = surface_targets(bone, frame, settings.template, apex_hole_radius_mm=radius)
     return fit, points, weights
+
+
+def fit_figures(fit: TemplateFit) -> dict[str, float]:
+    """A template fit's figures as cohort table columns ("fit_" names: no shape parameters)."""
+    return {"fit_share_within": fit.share_within, "fit_max_mm": fit.max_mm, "fit_rms_mm": fit.rms_mm,
+            "fit_cpu_s": fit.cpu_s}
 
 
 def write_cohort(bones: Sequence[tuple[str, BoneMesh, Mapping[str, float]]], out_dir: str | Path,
@@ -70,9 +82,7 @@ def write_cohort(bones: Sequence[tuple[str, BoneMesh, Mapping[str, float]]], out
             fits[name] = fit
             np.save(tmp / "points" / f"{name}.npy", fit.control_points)
             np.savez(tmp / "surface" / f"{name}.npz", points=points, weights=weights)
-            rows.append({"bone": name, **{k: float(v) for k, v in params.items()},
-                         "fit_share_within": fit.share_within, "fit_max_mm": fit.max_mm, "fit_rms_mm": fit.rms_mm,
-                         "fit_cpu_s": fit.cpu_s})
+            rows.append({"bone": name, **{k: float(v) for k, v in params.items()}, **fit_figures(fit)})
             log.info("%s: template fit %s", name, fit.summary())
         with open(tmp / "cohort.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
@@ -91,23 +101,24 @@ def read_cohort(cohort: str | Path) -> tuple[list[str], np.ndarray, dict[str, np
             rows = list(csv.DictReader(fh))
     except OSError as exc:
         raise InputError(f"cannot read the cohort table: {exc.strerror}", table) from None
-    if not rows or "bone" not in rows[0]:
-        raise InputError("the cohort table needs a 'bone' column and at least one row", table)
-    rows = [r for r in rows if (cohort / "points" / f"{r['bone']}.npy").is_file()]
+    key = "bone" if rows and "bone" in rows[0] else "id"  # ``bonecad cohort`` names its bones "id"
+    if not rows or key not in rows[0]:
+        raise InputError("the cohort table needs a 'bone' (or 'id') column and at least one row", table)
+    rows = [r for r in rows if r.get("status", "done") == "done" and (cohort / "points" / f"{r[key]}.npy").is_file()]
     if len(rows) < 3:
         raise InputError(f"fewer than 3 bones with template control points in {cohort / 'points'}", table)
-    names = [k for k in rows[0] if k != "bone" and not k.startswith("fit_")]
+    names = [k for k in rows[0] if k not in _NOT_PARAMETERS and not k.startswith("fit_")]
     params = {}
     for k in names:
         try:
             params[k] = np.array([float(r[k]) if r[k] not in ("", None) else math.nan for r in rows])
         except ValueError:
             continue  # a text column (a path, a note) is no parameter
-    shapes = [np.load(cohort / "points" / f"{r['bone']}.npy") for r in rows]
+    shapes = [np.load(cohort / "points" / f"{r[key]}.npy") for r in rows]
     if len({s.shape for s in shapes}) != 1:
         raise InputError("the bones' control-point arrays differ in shape (fitted with different templates?)",
                          cohort / "points")
-    return [r["bone"] for r in rows], np.stack(shapes), params
+    return [r[key] for r in rows], np.stack(shapes), params
 
 
 def build_model_folder(out_dir: str | Path, cohort: str | Path, settings: Settings, *,
@@ -218,13 +229,30 @@ def parse_parameter_flags(extra: Sequence[str], model: ShapeModel) -> dict[str, 
     return out
 
 
+def measure_shape(shape, settings: Settings) -> dict[str, float]:
+    """``bonecad measure`` of a closed solid (a morph; bone coordinates, mm): its tessellation (the analysis
+    settings, welded) as the bone mesh, the anatomical frame and the measure. Not through the mesh intake:
+    a solid is one closed body, and the intake's fused-bone rule (a neck near an end) has taken a morph's
+    malleolus for a talus."""
+    import trimesh
+
+    from bonecad.analysis.model import tessellate_model
+
+    tess = tessellate_model(shape, settings.analysis)
+    welded = trimesh.Trimesh(tess.vertices, tess.triangles, process=True)
+    bone = BoneMesh(np.asarray(welded.vertices), np.asarray(welded.faces), source="morph")
+    frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
+    return measure_tibia(bone, frame, settings.morphometry).values()
+
+
 def run_morph(model_path: str | Path, out_dir: str | Path, settings: Settings, *,
               parameters: Mapping[str, float] | None = None, modes: Sequence[float] | None = None) -> dict:
     """``bonecad morph``: a tibia from named parameters (regression to mode weights) or from mode weights
     (in SD units): morph.step, morph.iges, morph.tsm, morph_points.npy and morph.json into ``out_dir``.
 
-    morph.json holds the mode weights and the parameters predicted for the shape (the regression's input);
-    measuring them back on the morph needs ``bonecad measure`` (not wired in yet: "measured": null).
+    morph.json holds the mode weights, the parameters predicted for the shape by the regression, and those
+    measured back on the morph's solid by ``bonecad measure`` (its tessellation through the intake, the frame
+    and the measure, as a mesh would go).
     """
     from bonecad.export.registry import export
 
@@ -243,8 +271,8 @@ def run_morph(model_path: str | Path, out_dir: str | Path, settings: Settings, *
     predicted = predict_parameters(model, weights, settings.shape_model)
     doc = {"model": str(model_path), "mode_weights_sd": np.round(weights / model.sd[: len(weights)], 4).tolist(),
            "given_parameters": dict(parameters or {}),
-           "predicted_parameters": {k: round(v, 3) for k, v in predicted.items()}, "measured": None,
-           "measured_note": "measure the morph (morph.step) with `bonecad measure` once it exists",
+           "predicted_parameters": {k: round(v, 3) for k, v in predicted.items()},
+           "measured_parameters": {k: round(v, 3) for k, v in measure_shape(shape.shape, settings).items()},
            "coordinates": "bone coordinates of the shape model (mm; x lateral, y anterior, z proximal)"}
     with staged_output(out_dir) as tmp:
         export("morph", shape, tmp)
