@@ -36,7 +36,7 @@ def _busy(*args, **kwargs):
 
 # (what fails in a background job, what keeps this process busy meanwhile)
 CASES = {
-    "frame": {"anatomical_frame": _fails},  # beside the imports of OpenCascade and matplotlib
+    "frame": {"bone_frame": _fails},  # beside the imports of OpenCascade and matplotlib
     "contour curves": {"contour_curves": _fails},  # the same job, after the frame
     "mesh noise": {"mesh_noise": _fails, "curve_files_and_nurbs": _busy},
     "curve files and NURBS": {"curve_files_and_nurbs": _fails, "build_tspline_model": _busy},

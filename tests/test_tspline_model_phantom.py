@@ -132,14 +132,17 @@ def load_tube(path):
     return from_dict(json.loads(path.read_text())["tube"])
 
 
-def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model, rng):
+def test_solid_has_one_face_per_panel_and_the_same_surface(model, rng):
     from OCP.BRepGProp import BRepGProp
     from OCP.Geom import Geom_BSplineSurface
     from OCP.GProp import GProp_GProps
     from OCP.TopAbs import TopAbs_FACE
     from OCP.TopExp import TopExp_Explorer
 
-    from bonecad.occ.tspline import merged_surfaces, tensor_product_blocks
+    from OCP.BRep import BRep_Tool
+
+    from bonecad.occ.tspline import merged_surfaces, panel_faces, tensor_product_blocks
+    from bonecad.splines.tspline.tensor import panel_plan
     from bonecad.tspline_model.model import occ_shape, to_scanner
 
     patches = [model.tspline, *(c.tspline for c in model.caps)]
@@ -149,9 +152,21 @@ def test_solid_has_one_face_per_tensor_product_block_and_the_same_surface(model,
         n_faces += 1
         explorer.Next()
     elements = sum(p.extraction.n_elements for p in patches)
-    assert n_faces == sum(len(tensor_product_blocks(p)) for p in patches) < elements // 4
-    # the merged B-spline faces are the T-spline itself (scanner coordinates)
+    par, st = model.parameterisation, SETTINGS.tspline
+    assert st.face_layout == "panels"  # shipped: the tube's panels, each cap's tensor-product blocks
+    plan = panel_plan(model.tspline, t_cuts=(par.t_distal, par.t_proximal), face_cost=st.panel_face_cost,
+                      t_step=st.panel_t_step)
+    assert n_faces == len(plan) + sum(len(tensor_product_blocks(c.tspline)) for c in model.caps) < elements // 4
+    # the panels' faces and the blocks' merged B-spline faces are the T-spline itself (scanner coordinates)
     tube = model.tspline
+    s_lo, period = tube.mesh.s_range[0], tube.mesh.s_period
+    for face in panel_faces(to_scanner(tube, model.frame), plan):
+        surf = BRep_Tool.Surface_s(face)
+        u0, u1, v0, v1 = surf.Bounds()
+        u, v = rng.uniform(u0, u1, 20), rng.uniform(v0, v1, 20)
+        got = np.array([surf.Value(float(a), float(b)).Coord() for a, b in zip(u, v)])
+        want = model.frame.to_scanner(tube.evaluate(s_lo + np.mod(u - s_lo, period), v).points)
+        assert np.abs(got - want).max() < 1e-6
     for surf, _block in merged_surfaces(to_scanner(tube, model.frame)):
         if not isinstance(surf, Geom_BSplineSurface):
             continue
