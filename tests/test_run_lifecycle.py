@@ -103,6 +103,13 @@ def staging_folders(out: Path) -> list[str]:
     return sorted(p.name for p in out.parent.glob(f".{out.name}.staging-*"))
 
 
+def _sigint_as_in_a_terminal() -> None:
+    """In the child, before exec: SIGINT at its default, as a terminal's foreground job has it, so Python
+    turns Ctrl-C into KeyboardInterrupt. A test run started in the background by a non-interactive shell
+    inherits SIGINT ignored, and would pass that on to the run."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Run:
     """A ``bonecad`` subprocess whose stderr lines are collected as they come."""
 
@@ -110,7 +117,8 @@ class Run:
         self.lines: list[str] = []
         self.proc = subprocess.Popen(args, cwd=cwd, env=cli_env(), stdin=subprocess.DEVNULL,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     start_new_session=True)  # its own process group: Ctrl-C is killpg
+                                     start_new_session=True,  # its own process group: Ctrl-C is killpg
+                                     preexec_fn=_sigint_as_in_a_terminal)
         self.stdout = ""
         self._seen = threading.Event()
         self._wanted = None
