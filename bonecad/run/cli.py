@@ -177,8 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_logging(p)
 
     p = sub.add_parser("shape-model", help="statistical shape model of a cohort's template control points",
-                       description="Build a shape model from a cohort folder (cohort.csv with a 'bone' column and "
-                       "parameter columns, points/<bone>.npy template control points, optional "
+                       description="Build a shape model from a cohort folder (as bonecad cohort writes it: cohort.csv "
+                       "with an 'id' (or 'bone') column and parameter columns, points/<bone>.npy template "
+                       "control points, optional "
                        "surface/<bone>.npz): mean, modes, compactness, leave-one-out generalisation to each "
                        "bone's surface with two baselines, specificity; shape_model.npz, shape_model.json and "
                        "shape_modes.png into OUT.")
@@ -196,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "model's, e.g. --length 380 --plateau-width 78: a flag is a parameter's name without its "
                        "unit suffix; values outside the training range are refused) or from mode weights in SD "
                        "(--modes 1.0,-0.5). Writes morph.step, morph.iges, morph.tsm, morph_points.npy and "
-                       "morph.json (mode weights, predicted parameters) into --out.")
+                       "morph.json (mode weights, predicted parameters, those measured back on the morph) into --out.")
     p.add_argument("--model", type=Path, required=True, help="shape model folder or its shape_model.npz")
     p.add_argument("--modes", help="comma-separated mode weights in standard deviations")
     p.add_argument("--out", type=Path, required=True, help="output folder")
