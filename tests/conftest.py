@@ -1,4 +1,5 @@
-"""Shared fixtures: the phantom tibia, the real meshes in ../shared/data, a seeded RNG."""
+"""Shared fixtures: the phantom tibia, the real meshes in ../shared/data, a seeded RNG, and the CLI runs
+several test modules read (run once per session: each takes tens of seconds)."""
 from __future__ import annotations
 
 import os
@@ -71,3 +72,41 @@ def fused_tibia_fibula(tmp_path_factory):
         pytest.skip(f"{SOURCE} is absent (the fused tibia-fibula mesh is built from it)")
     fused = build_fused(SOURCE)
     return write_fused(tmp_path_factory.mktemp("fused") / "TLEM2_fused_1mm.stl", fused), fused
+
+
+#: the smallest real tibia (MRI, right side): the real input the CLI-level tests reconstruct
+SMALL_REAL_TIBIA = TIBIA_DIR / "ICL_MRI_tibia_r.stl"
+
+
+def _cli(args: list[str]) -> None:
+    from bonecad.run.cli import main
+
+    assert main([*args, "-q"]) == 0, f"bonecad {' '.join(args)} failed"
+
+
+@pytest.fixture(scope="session")
+def phantom_run(tmp_path_factory, phantom) -> Path:
+    """``bonecad reconstruct`` of the phantom mesh (both models, shipped settings): its output folder."""
+    folder = tmp_path_factory.mktemp("phantom_run")
+    mesh = folder / "phantom.stl"
+    phantom.to_trimesh().export(mesh)
+    _cli(["reconstruct", str(mesh), "--out", str(folder / "out")])
+    return folder / "out"
+
+
+@pytest.fixture(scope="session")
+def real_tibia_run(tmp_path_factory) -> Path:
+    """``bonecad reconstruct`` of ICL's MRI tibia (both models, shipped settings): its output folder."""
+    if not SMALL_REAL_TIBIA.is_file():
+        pytest.skip(f"the real tibia {SMALL_REAL_TIBIA} is absent (the shared data folder is not mounted)")
+    out = tmp_path_factory.mktemp("real_tibia_run") / "out"
+    _cli(["reconstruct", str(SMALL_REAL_TIBIA), "--out", str(out)])
+    return out
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory) -> Path:
+    """``bonecad demo``: the phantom imaged as a CT and reconstructed; its output folder."""
+    out = tmp_path_factory.mktemp("demo_run") / "out"
+    _cli(["demo", "--out", str(out)])
+    return out

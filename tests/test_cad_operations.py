@@ -12,21 +12,10 @@ from bonecad.occ.exchange import read_named_step
 from bonecad.occ.operations import run_cad_operations, solids, thicken
 from bonecad.run.cli import main
 
-from .conftest import real_mesh_params
 from .defaults import SETTINGS
 from .freecad import freecad_check, freecad_command
 
 OPERATIONS = ["offset", "thick_solid", "osteotomy", "drill", "section"]
-
-
-@pytest.fixture(scope="module")
-def phantom_run(tmp_path_factory, phantom):
-    """``bonecad reconstruct`` of the phantom (both models, shipped settings)."""
-    folder = tmp_path_factory.mktemp("cad")
-    mesh = folder / "phantom.stl"
-    phantom.to_trimesh().export(mesh)
-    assert main(["reconstruct", str(mesh), "--out", str(folder / "out"), "-q"]) == 0
-    return folder / "out"
 
 
 def _assert_all_pass(path):
@@ -87,17 +76,10 @@ def test_c0_joins_are_the_papers_and_do_not_offset(phantom, phantom_frame, tmp_p
     assert ops["osteotomy"].passed and ops["drill"].passed and ops["section"].passed
 
 
-def _smallest_real_mesh():
-    params = real_mesh_params()
-    return [p for p in params if p.id == "ICL_MRI_tibia_r"] or params[:1]
-
-
-@pytest.mark.parametrize("path", _smallest_real_mesh())
-def test_real_tibia_models_pass_the_five_operations(path, tmp_path):
-    assert main(["reconstruct", str(path), "--out", str(tmp_path), "-q"]) == 0
+def test_real_tibia_models_pass_the_five_operations(real_tibia_run):
     for model in ("nurbs", "tspline"):
-        _assert_all_pass(tmp_path / f"{model}.step")
-    assert (tmp_path / "tspline.step").stat().st_size <= 2_000_000  # lean STEP (panels): 1.26 MB measured
+        _assert_all_pass(real_tibia_run / f"{model}.step")
+    assert (real_tibia_run / "tspline.step").stat().st_size <= 2_000_000  # lean STEP (panels): 1.26 MB measured
 
 
 @pytest.mark.skipif(freecad_command() is None, reason="FreeCAD is not installed (no freecadcmd on PATH; Debian: "

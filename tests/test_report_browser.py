@@ -17,12 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import TIBIA_DIR
 from tests.test_analysis_report import parse_cells
 
 CHROMIUM = shutil.which("chromium")
-#: the smallest real tibia (MRI, right side)
-TIBIA = TIBIA_DIR / "ICL_MRI_tibia_r.stl"
 #: software WebGL (SwiftShader): CI machines have no GPU
 FLAGS = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
          "--enable-logging=stderr", "--v=0"]
@@ -35,19 +32,10 @@ pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="Chromium is absent (sc
                                                           "Debian's chromium package)")
 
 
-@pytest.fixture(scope="module", params=["demo", "real tibia"])
-def report_html(request, tmp_path_factory) -> Path:
+@pytest.fixture(params=["demo_run", "real_tibia_run"], ids=["demo", "real tibia"])
+def report_html(request) -> Path:
     """report.html of ``bonecad demo`` (the phantom from its CT) or of ICL's MRI tibia (``bonecad reconstruct``)."""
-    from bonecad.run.cli import main
-
-    out = tmp_path_factory.mktemp("browser") / "run"
-    if request.param == "real tibia":
-        if not TIBIA.is_file():
-            pytest.skip(f"the real tibia {TIBIA} is absent (the shared data folder is not mounted)")
-        assert main(["reconstruct", str(TIBIA), "--out", str(out), "-q"]) == 0
-    else:
-        assert main(["demo", "--out", str(out), "-q"]) == 0
-    return out / "report.html"
+    return request.getfixturevalue(request.param) / "report.html"
 
 
 def chromium(*args: str) -> subprocess.CompletedProcess:
