@@ -61,14 +61,12 @@ def test_the_whole_tube_as_one_exact_bspline_face(phantom_run, tmp_path, rng):
     assert path.stat().st_size < (phantom_run / "tspline.step").stat().st_size
 
 
-def test_c0_joins_are_the_papers_and_do_not_offset(phantom, phantom_frame, tmp_path):
+def test_c0_joins_are_the_papers_and_do_not_offset(phantom_contours, tmp_path):
     """The paper's C0 joins stay an option; OpenCascade refuses to offset them (why G1 is the default)."""
-    from bonecad.contours.curves import contour_curves
     from bonecad.nurbs_model.model import build_nurbs
     from bonecad.occ.brep import write_named_step
 
-    contours = contour_curves(phantom, phantom_frame, settings=SETTINGS.curves)
-    model = build_nurbs(contours, settings=replace(SETTINGS.nurbs, joins="C0"))
+    model = build_nurbs(phantom_contours, settings=replace(SETTINGS.nurbs, joins="C0"))
     assert model.summary()["joins"] == "C0"
     path = write_named_step(model.shape, tmp_path / "nurbs.step", "nurbs", list(model.face_names))
     ops = {op.name: op for op in run_cad_operations(read_named_step(path)[0])}
