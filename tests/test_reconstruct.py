@@ -1,4 +1,5 @@
-"""`bonecad reconstruct`: the output contract on the phantom (NURBS model; the T-spline is tested with its stage)."""
+"""`bonecad reconstruct`: the output contract on the phantom (the session's ``phantom_run``; the NURBS model's files
+here, the T-spline's with its stage)."""
 from __future__ import annotations
 
 import json
@@ -12,23 +13,13 @@ CONTRACT = {"nurbs.step", "nurbs.iges", "curves.step", "curves.iges", "curves.js
             "report.html", "nurbs_deviation.png", "histograms.png", "nurbs_zebra.png", "curves.png"}
 
 
-@pytest.fixture(scope="module")
-def nurbs_run(tmp_path_factory, phantom):
-    folder = tmp_path_factory.mktemp("reconstruct")
-    mesh = folder / "phantom.stl"
-    phantom.to_trimesh().export(mesh)
-    out = folder / "out"
-    assert main(["reconstruct", str(mesh), "--out", str(out), "--model", "nurbs", "-q"]) == 0
-    return out
+def test_output_contract(phantom_run):
+    assert CONTRACT <= {p.name for p in phantom_run.iterdir()}
+    assert not any(p.name.startswith(".") for p in phantom_run.parent.iterdir())  # no staging left
 
 
-def test_output_contract(nurbs_run):
-    assert CONTRACT <= {p.name for p in nurbs_run.iterdir()}
-    assert not any(p.name.startswith(".") for p in nurbs_run.parent.iterdir())  # no staging left
-
-
-def test_report_json(nurbs_run):
-    report = json.loads((nurbs_run / "report.json").read_text())
+def test_report_json(phantom_run):
+    report = json.loads((phantom_run / "report.json").read_text())
     assert report["schema"] == "bonecad.report/1"
     assert report["input"]["side"] == "right"
     nurbs = report["models"]["nurbs"]
@@ -42,7 +33,7 @@ def test_report_json(nurbs_run):
     assert list(report["morphometry"]) == list(PARAMETER_NAMES)  # `bonecad measure`'s values, cheaply
 
 
-def test_nurbs_step_is_one_closed_valid_solid(nurbs_run, phantom):
+def test_nurbs_step_is_one_closed_valid_solid(phantom_run, phantom):
     from OCP.BRepCheck import BRepCheck_Analyzer
     from OCP.BRepGProp import BRepGProp
     from OCP.GProp import GProp_GProps
@@ -52,7 +43,7 @@ def test_nurbs_step_is_one_closed_valid_solid(nurbs_run, phantom):
     from OCP.TopExp import TopExp_Explorer
 
     reader = STEPControl_Reader()
-    assert reader.ReadFile(str(nurbs_run / "nurbs.step")) == IFSelect_RetDone
+    assert reader.ReadFile(str(phantom_run / "nurbs.step")) == IFSelect_RetDone
     reader.TransferRoots()
     shape = reader.OneShape()
     explorer = TopExp_Explorer(shape, TopAbs_SOLID)
@@ -68,14 +59,14 @@ def test_nurbs_step_is_one_closed_valid_solid(nurbs_run, phantom):
     assert abs(props.Mass() - mesh_volume) / mesh_volume < 0.01
 
 
-def test_cad_files_carry_a_fixed_date(nurbs_run):
+def test_cad_files_carry_a_fixed_date(phantom_run):
     """STEP and IGES headers hold a fixed date, not the time of the run (the same input gives the same file)."""
     from bonecad.occ.brep import FIXED_TIMESTAMP
 
     iges_date = FIXED_TIMESTAMP.replace("-", "").replace("T", ".").replace(":", "")
-    for path in sorted(nurbs_run.glob("*.step")):
+    for path in sorted(phantom_run.glob("*.step")):
         assert f"FILE_NAME('{path.stem.replace('curves', 'bonecad_curves')}','{FIXED_TIMESTAMP}'" in path.read_text()
-    for path in sorted(nurbs_run.glob("*.iges")):
+    for path in sorted(phantom_run.glob("*.iges")):
         global_section = "".join(line[:72] for line in path.read_text().splitlines() if line[72:73] == "G")
         assert global_section.count(f"15H{iges_date}") == 2  # the file's date and its last change
 
