@@ -68,7 +68,10 @@ class FitTolerances:
     noise_factor : noise-aware stopping (with ``fit_adaptive(noise=...)``): a
         point whose distance is within this many times the local noise level
         of the data is fitted as well as the data allow, and does not ask for
-        refinement (an MRI slice staircase is not followed).
+        refinement (an MRI slice staircase is not followed). Once the share
+        holds with those points counted as fitted, only points beyond
+        ``max_deviation_mm`` ask for more, and where they lie in elements at
+        the size limit the fit stops at the noise (and says so).
     """
 
     share_within: tuple[float, float]
