@@ -244,3 +244,29 @@ def test_once_share_and_rms_hold_only_points_beyond_the_maximum_ask_for_refineme
     distance[: n // 20] = 0.4
     marked, _ = _marked_elements(ts, elem, distance, np.ones(n), tol)
     assert elem[n // 200] in marked and len(marked) > 1
+    # ... unless the share holds up to the data's noise: then again only the point beyond the maximum asks
+    distance[n // 200] = 1.5
+    marked, _ = _marked_elements(ts, elem, distance, np.ones(n), tol, stalled=distance < 1.0, share_held=True)
+    assert marked.tolist() == [elem[n // 200]]
+
+
+def test_staircase_with_a_fold_no_element_can_follow_stops_at_its_noise_and_says_so():
+    """A staircase with a fold (points 1.3 mm out and 1.3 mm in at one place: no surface comes within the
+    1 mm maximum of both, however fine): once the share holds up to the noise, only the points beyond the
+    maximum ask for refinement, and when their elements are at the size limit the fit stops at the noise."""
+    from bonecad.splines.tspline.fit import local_noise_mm, voxel_step_mm
+
+    rng = np.random.default_rng(4)
+    pts, s, t = ellipsoid_band(20000, rng)
+    stair = np.round(pts / 0.5) * 0.5
+    fold = np.flatnonzero(np.hypot(s - 30.0, t - 30.0) < 0.6)
+    normal = pts[fold] * np.array([1.0 / 144, 1.0 / 64, 0.0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    stair[fold] = pts[fold] + normal * np.where(np.arange(len(fold)) % 2, 1.3, -1.3)[:, None]
+    noise = local_noise_mm(stair, voxel_mm=voxel_step_mm(stair))
+    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.1), max_deviation_mm=1.0, rms_mm=0.05,
+                  max_control_points=5000, min_element_mm=0.5, max_rounds=10)
+    res = fit_adaptive(cylinder(8, 4), stair, s=s, t=t, tolerances=tol, fairness=1e-6, noise=noise)
+    assert len(fold) >= 4 and res.stats.max_mm > 1.0
+    assert "up to the data's noise" in res.stopped and "size limit" in res.stopped, res.stopped
+    assert len(res.history) < tol.max_rounds + 1

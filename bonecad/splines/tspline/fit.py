@@ -68,7 +68,10 @@ class FitTolerances:
     noise_factor : noise-aware stopping (with ``fit_adaptive(noise=...)``): a
         point whose distance is within this many times the local noise level
         of the data is fitted as well as the data allow, and does not ask for
-        refinement (an MRI slice staircase is not followed).
+        refinement (an MRI slice staircase is not followed). Once the share
+        holds with those points counted as fitted, only points beyond
+        ``max_deviation_mm`` ask for more, and where they lie in elements at
+        the size limit the fit stops at the noise (and says so).
     """
 
     share_within: tuple[float, float]
@@ -382,7 +385,7 @@ def element_sizes_mm(ts: TSpline) -> np.ndarray:
 
 
 def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, frozen=None,
-                     stalled: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     stalled: np.ndarray | None = None, share_held: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Elements to refine: Doerfler marking of the weight beyond the tolerance.
 
     elem : (n,) element of each point. Elements are ranked by the weight
@@ -394,7 +397,9 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     along s (t) only while its physical size along s (t) is at least twice
     ``min_element_mm``; those ``frozen`` (a function of element bounds ->
     bool) are left alone, and ``stalled`` points ((n,) bool, within the
-    data's noise, see ``FitTolerances.noise_factor``) count for nothing.
+    data's noise, see ``FitTolerances.noise_factor``) count for nothing;
+    ``share_held`` (the share holds up to the data's noise): only the points
+    beyond the maximum deviation ask for more.
     Returns (marked element indices, (n_e, 2) bool: which directions may be halved).
     """
     ext = ts.extraction
@@ -415,7 +420,7 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     deficit = tol.share_within[0] * weights.sum() - weights[distance <= tol.share_within[1]].sum()
     rms_met = np.sqrt(np.sum(weights * distance**2) / weights.sum()) <= tol.rms_mm
     # once the share and the RMS hold, only the points beyond the maximum ask for more
-    if cum[-1] > 0 and (deficit > 0 or not rms_met):
+    if cum[-1] > 0 and (deficit > 0 or not rms_met) and not share_held:
         fraction = (tol.mark_fraction if deficit <= 0
                     else min(tol.mark_fraction, tol.mark_deficit_factor * deficit / cum[-1]))
         k = int(np.searchsorted(cum, fraction * cum[-1])) + 1
@@ -482,18 +487,28 @@ def _split_axes(marked: np.ndarray, elem, u, v, residual, weights, halvable, ani
     return axes | (~axes.any(axis=1, keepdims=True) & halvable[marked])
 
 
-def _meets_up_to_noise(distance: np.ndarray, weights: np.ndarray, stalled: np.ndarray, tol: FitTolerances) -> bool:
-    """The tolerances hold when points within the data's noise count as fitted:
-    the share target on (within | stalled), and no point beyond the noise and
-    beyond the maximum deviation. (The RMS bar is not asked: on a staircase
-    the noise alone sets it.) Only when the noisy points beyond the tolerance
-    outweigh the share the target leaves over (1 - share): else the strict
-    target is reachable without following the noise, and the fit goes on."""
+def _share_up_to_noise(distance: np.ndarray, weights: np.ndarray, stalled: np.ndarray, tol: FitTolerances) -> bool:
+    """The share target holds when points within the data's noise count as fitted (the share target on
+    within | stalled). Only when the noisy points beyond the tolerance outweigh the share the target leaves
+    over (1 - share): else the strict target is reachable without following the noise, and the fit goes on.
+    (The RMS bar is not asked: on a staircase the noise alone sets it.)"""
     beyond = distance > tol.share_within[1]
     if _share(weights, stalled & beyond) <= 1.0 - tol.share_within[0]:
         return False
-    fitted = ~beyond | stalled
-    return _share(weights, fitted) >= tol.share_within[0] and not np.any((distance > tol.max_deviation_mm) & ~stalled)
+    return _share(weights, ~beyond | stalled) >= tol.share_within[0]
+
+
+def _meets_up_to_noise(distance: np.ndarray, weights: np.ndarray, stalled: np.ndarray, tol: FitTolerances) -> bool:
+    """The tolerances hold up to the data's noise: the share (``_share_up_to_noise``), and no point beyond
+    the noise and beyond the maximum deviation."""
+    return (_share_up_to_noise(distance, weights, stalled, tol)
+            and not np.any((distance > tol.max_deviation_mm) & ~stalled))
+
+
+def _noise_note(distance: np.ndarray, weights: np.ndarray, stalled: np.ndarray, tol: FitTolerances) -> str:
+    """How much of the surface the noise excuses, for the fit's stop reason."""
+    return (f"{_share(weights, stalled & (distance > tol.share_within[1])):.2%} of the surface lies beyond "
+            f"{tol.share_within[1]} mm but within {tol.noise_factor} x the local noise")
 
 
 def _share(weights: np.ndarray, mask: np.ndarray) -> float:
@@ -585,22 +600,25 @@ def fit_adaptive(
             return FitResult(ts, s, t, dist, stats, history, True, "tolerances met")
         stalled = None if noise_mm is None else dist <= noise_mm
         if stalled is not None and _meets_up_to_noise(dist, w, stalled, tol):
-            beyond = _share(w, stalled & (dist > tol.share_within[1]))
-            stopped = (f"tolerances met up to the data's noise: {beyond:.2%} "
-                       f"of the surface lies beyond {tol.share_within[1]} mm but within {tol.noise_factor} x the "
-                       f"local noise; no point beyond {tol.max_deviation_mm} mm asks for more")
+            stopped = (f"tolerances met up to the data's noise: {_noise_note(dist, w, stalled, tol)}; "
+                       f"no point beyond {tol.max_deviation_mm} mm asks for more")
             break
         if round_ == tol.max_rounds:
             stopped = f"round limit ({tol.max_rounds}) reached"
             break
         elem, u, v = ts.extraction.locate(s, t)
-        marked, halvable = _marked_elements(ts, elem, dist, w, tol, frozen, stalled)
+        share_held = stalled is not None and _share_up_to_noise(dist, w, stalled, tol)
+        marked, halvable = _marked_elements(ts, elem, dist, w, tol, frozen, stalled, share_held)
+        if marked.size == 0 and stalled is not None and share_held:
+            stopped = (f"tolerances met up to the data's noise: {_noise_note(dist, w, stalled, tol)}; the "
+                       f"{int(np.sum(dist > tol.max_deviation_mm))} points beyond {tol.max_deviation_mm} mm (up to "
+                       f"{dist.max():.2f} mm) lie in elements that may not be split further (size limit "
+                       f"{2 * tol.min_element_mm} mm), where no refinement reaches")
+            break
         if marked.size == 0:
             stopped = f"no element larger than {2 * tol.min_element_mm} mm misses the tolerance"
             if stalled is not None:
-                stopped += (f" beyond the data's noise ({_share(w, stalled & (dist > tol.share_within[1])):.2%}"
-                            f" of the surface lies beyond {tol.share_within[1]} mm but within "
-                            f"{tol.noise_factor} x the local noise)")
+                stopped += f" beyond the data's noise ({_noise_note(dist, w, stalled, tol)})"
             break
         axes = _split_axes(marked, elem, u, v, _signed_distance(ts, points, s, t, dist), w, halvable,
                            tol.split_anisotropy, _marked_adjacency(ts.extraction, marked))
