@@ -63,15 +63,17 @@ class SurfaceSamples:
     weights: np.ndarray
 
 
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, *, seed: int = 0) -> SurfaceSamples:
-    """``count`` points uniformly distributed by area on a triangle mesh (deterministic for ``seed``)."""
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, *, seed: int = 0,
+                   areas: np.ndarray | None = None) -> SurfaceSamples:
+    """``count`` points uniformly distributed by area on a triangle mesh (deterministic for ``seed``);
+    ``areas``: the triangles' areas (mm^2) when the caller has them (None: computed here)."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     if count <= 0:
         raise ValueError(f"sample count must be > 0, got {count}")
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"need vertices (n, 3) and faces (m, 3), got {vertices.shape}, {faces.shape}")
-    areas = triangle_areas(vertices, faces)
+    areas = triangle_areas(vertices, faces) if areas is None else areas
     total = areas.sum()
     if not total > 0:
         raise ValueError("mesh has zero area")
@@ -362,8 +364,8 @@ def shape_deviation(
     seed : seed of the area-weighted sampling (same seed, same samples)
     map_vertices : (k, 3) mm, the points of ``vertex_deviation_mm`` (the vertices of the mesh the colour
         map draws, e.g. a simplified copy of the same surface); None: ``vertices``
-    mesh_locator : the closest-point tree of the mesh (with its vertex normals) when the caller has it
-        (None: built here)
+    mesh_locator : the closest-point tree of the mesh (with its vertex normals and triangle areas) when the
+        caller has it (None: built here)
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
@@ -372,7 +374,8 @@ def shape_deviation(
     tess = tessellation
 
     t0 = time.perf_counter()
-    samples = sample_surface(vertices, faces, count, seed=seed)
+    mesh_locator = mesh_locator or TriangleLocator(vertices, faces)
+    samples = sample_surface(vertices, faces, count, seed=seed, areas=mesh_locator.triangle_areas)
     shape_locator = TriangleLocator(tess.vertices, tess.triangles)  # shared with the vertex distances
     sd = signed_distance_to_shape(samples.points, tess, locator=shape_locator)
     forward = summarise(
@@ -382,7 +385,6 @@ def shape_deviation(
 
     t0 = time.perf_counter()
     cad_points, weights, on_surface = sample_shape(tess, count, seed=seed + 1)
-    mesh_locator = mesh_locator or TriangleLocator(vertices, faces)
     near = mesh_locator.query(cad_points)
     normal = np.einsum("nk,nkj->nj", near.barycentric, mesh_locator.vertex_normals[faces[near.triangle]])
     back_dev = -_signed(cad_points, near.points, normal)

@@ -13,6 +13,7 @@ from functools import cached_property
 
 import numpy as np
 
+from bonecad.mesh.sampling import triangle_areas
 
 
 @dataclass(frozen=True)
@@ -121,6 +122,11 @@ class TriangleLocator:
     def vertex_normals(self) -> np.ndarray:
         """(n, 3) the mesh's unit vertex normals (``vertex_normals``; computed at the first use, then kept)."""
         return vertex_normals(self.vertices, self.triangles)
+
+    @cached_property
+    def triangle_areas(self) -> np.ndarray:
+        """(m,) mm^2: the area of each triangle (computed at the first use, then kept)."""
+        return triangle_areas(self.vertices, self.triangles)
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(N,) mm: the distance of each of ``points`` (N, 3) from the mesh (the tree's own, no closest points)."""
