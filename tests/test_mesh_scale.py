@@ -103,3 +103,19 @@ def test_real_meshes_are_their_own_working_copy():
     """The meshes of ../shared/data are no denser than the working copy: read as they are (same figures)."""
     for path in REAL_MESHES:
         assert bonecad.load_bone(path).working is None, path.name
+
+
+def test_locator_keeps_the_meshs_normals_and_areas(phantom):
+    """The full mesh's vertex normals and triangle areas are computed once with its tree and reused by the
+    deviation: the same arrays as computed afresh, and the same samples."""
+    from bonecad.analysis.deviation import sample_surface
+    from bonecad.mesh.closest import vertex_normals
+    from bonecad.mesh.sampling import triangle_areas
+
+    locator = TriangleLocator(phantom.vertices, phantom.faces)
+    assert np.array_equal(locator.vertex_normals, vertex_normals(phantom.vertices, phantom.faces))
+    assert locator.vertex_normals is locator.vertex_normals  # kept
+    assert np.array_equal(locator.triangle_areas, triangle_areas(phantom.vertices, phantom.faces))
+    given = sample_surface(phantom.vertices, phantom.faces, 2000, seed=3, areas=locator.triangle_areas)
+    afresh = sample_surface(phantom.vertices, phantom.faces, 2000, seed=3)
+    assert np.array_equal(given.points, afresh.points) and np.array_equal(given.triangle, afresh.triangle)

@@ -38,7 +38,7 @@ from collections.abc import Callable
 import numpy as np
 
 from bonecad.mesh.sampling import triangle_areas
-from bonecad.mesh.closest import TriangleLocator, vertex_normals
+from bonecad.mesh.closest import TriangleLocator
 from bonecad.splines.project import project_faces
 from bonecad.analysis.statistics import DeviationStats, Histogram, deviation_stats, histogram, share_within
 from bonecad.mesh.tessellation import Tessellation
@@ -63,16 +63,17 @@ class SurfaceSamples:
     weights: np.ndarray
 
 
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, *, seed: int = 0) -> SurfaceSamples:
-    """``count`` points uniformly distributed by area on a triangle mesh (deterministic for ``seed``)."""
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, *, seed: int = 0,
+                   areas: np.ndarray | None = None) -> SurfaceSamples:
+    """``count`` points uniformly distributed by area on a triangle mesh (deterministic for ``seed``);
+    ``areas``: the triangles' areas (mm^2) when the caller has them (None: computed here)."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     if count <= 0:
         raise ValueError(f"sample count must be > 0, got {count}")
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"need vertices (n, 3) and faces (m, 3), got {vertices.shape}, {faces.shape}")
-    tri = vertices[faces]
-    areas = triangle_areas(vertices, faces)
+    areas = triangle_areas(vertices, faces) if areas is None else areas
     total = areas.sum()
     if not total > 0:
         raise ValueError("mesh has zero area")
@@ -82,7 +83,7 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, *, seed:
     r1 = np.sqrt(rng.random(count))
     r2 = rng.random(count)
     bary = np.column_stack([1 - r1, r1 * (1 - r2), r1 * r2])
-    points = np.einsum("nk,nkj->nj", bary, tri[chosen])
+    points = np.einsum("nk,nkj->nj", bary, vertices[faces[chosen]])  # only the chosen triangles' corners
     return SurfaceSamples(points, chosen, bary, np.full(count, total / count))
 
 
@@ -363,7 +364,8 @@ def shape_deviation(
     seed : seed of the area-weighted sampling (same seed, same samples)
     map_vertices : (k, 3) mm, the points of ``vertex_deviation_mm`` (the vertices of the mesh the colour
         map draws, e.g. a simplified copy of the same surface); None: ``vertices``
-    mesh_locator : the closest-point tree of the mesh when the caller has it (None: built here)
+    mesh_locator : the closest-point tree of the mesh (with its vertex normals and triangle areas) when the
+        caller has it (None: built here)
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
@@ -372,7 +374,8 @@ def shape_deviation(
     tess = tessellation
 
     t0 = time.perf_counter()
-    samples = sample_surface(vertices, faces, count, seed=seed)
+    mesh_locator = mesh_locator or TriangleLocator(vertices, faces)
+    samples = sample_surface(vertices, faces, count, seed=seed, areas=mesh_locator.triangle_areas)
     shape_locator = TriangleLocator(tess.vertices, tess.triangles)  # shared with the vertex distances
     sd = signed_distance_to_shape(samples.points, tess, locator=shape_locator)
     forward = summarise(
@@ -382,8 +385,8 @@ def shape_deviation(
 
     t0 = time.perf_counter()
     cad_points, weights, on_surface = sample_shape(tess, count, seed=seed + 1)
-    near = (mesh_locator or TriangleLocator(vertices, faces)).query(cad_points)
-    normal = np.einsum("nk,nkj->nj", near.barycentric, vertex_normals(vertices, faces)[faces[near.triangle]])
+    near = mesh_locator.query(cad_points)
+    normal = np.einsum("nk,nkj->nj", near.barycentric, mesh_locator.vertex_normals[faces[near.triangle]])
     back_dev = -_signed(cad_points, near.points, normal)
     backward = summarise(cad_points, back_dev, weights, _labels(cad_points, regions), on_surface, edges_mm)
     timings["cad_to_mesh"] = time.perf_counter() - t0

@@ -9,9 +9,11 @@ The nearest triangle of each query point comes from libigl's bounding-box tree
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
+from bonecad.mesh.sampling import triangle_areas
 
 
 @dataclass(frozen=True)
@@ -87,9 +89,8 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(n, 3) unit vertex normals, area-weighted sums of the incident triangle normals."""
     tri = vertices[triangles]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    acc = np.zeros_like(vertices, dtype=np.float64)
-    for k in range(3):
-        np.add.at(acc, triangles[:, k], fn)
+    corners = np.ascontiguousarray(triangles.T).ravel()  # corner 0 of every triangle, then 1, then 2
+    acc = np.stack([np.bincount(corners, np.tile(fn[:, j], 3), minlength=len(vertices)) for j in range(3)], axis=1)
     return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-300)
 
 
@@ -116,6 +117,16 @@ class TriangleLocator:
             raise ValueError("triangles index vertices out of range")
         self._tree = igl.AABB()
         self._tree.init(self.vertices, self.triangles)
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        """(n, 3) the mesh's unit vertex normals (``vertex_normals``; computed at the first use, then kept)."""
+        return vertex_normals(self.vertices, self.triangles)
+
+    @cached_property
+    def triangle_areas(self) -> np.ndarray:
+        """(m,) mm^2: the area of each triangle (computed at the first use, then kept)."""
+        return triangle_areas(self.vertices, self.triangles)
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(N,) mm: the distance of each of ``points`` (N, 3) from the mesh (the tree's own, no closest points)."""

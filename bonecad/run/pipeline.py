@@ -241,7 +241,9 @@ def reconstruct_bone(
                     importlib.import_module(module)
             if until == "models":
                 with timings.stage("closest-point tree of the mesh"):
-                    _ = bone.locator  # built in idle time, for both models' analysis (their jobs fork later)
+                    # the tree, its vertex normals and triangle areas, built in idle time for both models'
+                    # analysis (their jobs fork later)
+                    _ = bone.locator.vertex_normals, bone.locator.triangle_areas
             with timings.stage("waiting for the frame and the contour curves"):
                 frame, contours, front_timings = front.result()
             timings.update(front_timings)
