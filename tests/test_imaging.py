@@ -280,7 +280,7 @@ def test_whole_leg_ct_with_thick_slices_gives_the_tibia_without_its_talus(tlem2_
     true = trimesh.Trimesh(tlem2_leg.tibia_vertices, tlem2_leg.tibia_faces)
     samples, _ = trimesh.sample.sample_surface(true, 30000, seed=2)
     distance = TriangleLocator(got.vertices, got.faces).query(samples).distance
-    assert np.mean(distance <= 0.25) >= 0.97  # measured 0.980
-    assert distance.max() <= 2.0  # measured 1.5 (the fused proximal tibiofibular joint)
+    assert np.mean(distance <= 0.25) >= 0.97  # measured 0.983
+    assert distance.max() <= 2.0  # measured 1.61 (the fused proximal tibiofibular joint)
     # nothing of the talus: the segmented tibia ends where the true one does
     assert got.vertices[:, 2].min() >= true.vertices[:, 2].min() - 1.0
