@@ -63,6 +63,26 @@ def test_occupancy_holds_the_mesh_volume():
     assert share[30, 30, 30] == 1.0 and share[0, 0, 0] == 0.0
 
 
+def test_occupancy_with_several_rays_is_a_partial_volume_whose_half_level_is_the_surface():
+    """A CT voxel integrates over its volume: the 0.5 iso-surface of the occupancy lies on the sphere. One
+    centre-line ray per axis makes the share jump at the voxel centre (measured RMS 0.11, max 0.34 voxel);
+    2 x 2 rays per axis: RMS 0.047, max 0.17 voxel."""
+    from skimage.measure import marching_cubes
+
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=10.0)
+    centre = np.array([0.13, -0.21, 0.37])
+    sphere.apply_translation(centre)
+    errors = {}
+    for rays in (1, 2):
+        share = occupancy(sphere.vertices, sphere.faces, np.array([-15.0, -15.0, -15.0]), 1.0, (31, 31, 31),
+                          rays=rays)
+        assert share.sum() == pytest.approx(sphere.volume, rel=2e-3)
+        kji, _, _, _ = marching_cubes(share, 0.5)
+        errors[rays] = np.linalg.norm(kji[:, ::-1] - 15.0 - centre, axis=1) - 10.0
+    assert np.sqrt(np.mean(errors[2] ** 2)) < 0.06 and np.abs(errors[2]).max() < 0.2
+    assert np.sqrt(np.mean(errors[1] ** 2)) > 0.09  # what the rays are for
+
+
 def test_phantom_has_the_tissue_values(bone, bone_ct):
     ct = bone_ct
     assert ct.missing_slices == ()
@@ -260,7 +280,7 @@ def test_whole_leg_ct_with_thick_slices_gives_the_tibia_without_its_talus(tlem2_
     true = trimesh.Trimesh(tlem2_leg.tibia_vertices, tlem2_leg.tibia_faces)
     samples, _ = trimesh.sample.sample_surface(true, 30000, seed=2)
     distance = TriangleLocator(got.vertices, got.faces).query(samples).distance
-    assert np.mean(distance <= 0.25) >= 0.97  # measured 0.980
-    assert distance.max() <= 2.0  # measured 1.5 (the fused proximal tibiofibular joint)
+    assert np.mean(distance <= 0.25) >= 0.97  # measured 0.983
+    assert distance.max() <= 2.0  # measured 1.61 (the fused proximal tibiofibular joint)
     # nothing of the talus: the segmented tibia ends where the true one does
     assert got.vertices[:, 2].min() >= true.vertices[:, 2].min() - 1.0

@@ -17,6 +17,12 @@ CORTICAL_HU = 1500.0
 MARROW_HU = 200.0
 SOFT_TISSUE_HU = 40.0
 AIR_HU = -1000.0
+# Rays per voxel edge of the partial volume (``voxelize.occupancy``): a CT voxel
+# integrates over its volume; one centre-line ray per axis makes the share jump
+# at the voxel centre, and a bone's iso-surface ripples by up to a quarter voxel
+# (ICL tibia at 0.8 x 0.8 x 1.0 mm: 98.2 % within 0.25 mm with 1 ray, RMS
+# 0.08 mm; with 2 x 2 rays 100.0 %, RMS 0.035 mm; 3 x 3 rays: the same).
+PV_RAYS = 2
 
 
 def mesh_to_ct(
@@ -65,7 +71,7 @@ def mesh_to_ct(
     sub = max(1, int(round(spacing[2] / min(spacing[0], spacing[1]))))
     fine = spacing / np.array([1.0, 1.0, sub])
     fine_low = low - np.array([0.0, 0.0, 0.5 * (spacing[2] - fine[2])])
-    bone = occupancy(vertices, faces, fine_low, fine, (shape[0] * sub, shape[1], shape[2]))
+    bone = occupancy(vertices, faces, fine_low, fine, (shape[0] * sub, shape[1], shape[2]), rays=PV_RAYS)
     if sub > 1:
         bone = bone.reshape(shape[0], sub, shape[1], shape[2]).mean(axis=1)
     spacing_kji = spacing[::-1]

@@ -137,13 +137,15 @@ def segment_bone(
     field[dest] = volume.hu[clipped]
 
     # Grow the tibia 2 voxels into voxels above half-way between tissue and the
-    # level (closes a thin, partial-volumed cortex), close, fill the marrow.
+    # level (closes a thin, partial-volumed cortex), close, fill the marrow;
+    # never into a neighbour's voxels (a talus dome separated from the plafond
+    # lies inside the tibia's rim in the slices through the joint).
     weak = (field >= 0.5 * (level + tissue)) & ~other
     own |= ndimage.binary_dilation(own, iterations=_GROW_VOXELS, mask=weak)
     del weak
     own = ndimage.binary_closing(own, structure=ndimage.generate_binary_structure(3, 1), iterations=1)
     own = _fill_holes(own)
-    own = _fill_cross_sections(own, tibia.axis, volume)
+    own = _fill_cross_sections(own, tibia.axis, volume) & ~other
 
     # Grey values for marching cubes: the interior lifted above the level (marrow
     # filled), everything away from the tibia pushed below it (no fibula).
