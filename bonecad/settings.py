@@ -333,12 +333,14 @@ class Settings:
 @dataclass(frozen=True)
 class BoneProfile:
     """What differs per bone (``data/bones/<name>.toml``): how to recognise it and its ends, the frame
-    strategy and its centreline, the side rule, the regions' names, and settings of its own."""
+    strategy and its centreline, the side rule, the regions' names, and settings of its own. body: the
+    body the intake keeps from a mesh of several bones (``mesh.intake.prepare_bone``'s ``keep``)."""
 
     name: str
     description: str
     wider_end: Literal["proximal", "distal"]
     narrow_end: str
+    body: Literal["tibia", "femur"]
     frame: Literal["tibia", "femur"]
     centreline: Literal["straight", "curved"]
     side_rule: str
@@ -356,6 +358,7 @@ def load_profile(name: str) -> BoneProfile:
         name=data["name"], description=data["description"],
         wider_end=_typed(recognise["wider_end"], Literal["proximal", "distal"], f"{name}.wider_end", None),
         narrow_end=recognise["narrow_end"],
+        body=_typed(recognise["body"], Literal["tibia", "femur"], f"{name}.body", None),
         frame=_typed(frame["strategy"], Literal["tibia", "femur"], f"{name}.strategy", None),
         centreline=_typed(frame["centreline"], Literal["straight", "curved"], f"{name}.centreline", None),
         side_rule=frame["side_rule"], regions=dict(data["regions"]), settings=dict(data.get("settings", {})))

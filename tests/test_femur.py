@@ -130,6 +130,61 @@ def test_a_mesh_that_is_neither_exits_2_naming_what_it_looks_like(tmp_path, caps
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("path, asked, looks", [
+    ("femur/ICL_MRI_femur_r.stl", "tibia", "looks like a femur: a 482 mm bone with a 26 mm sphere (a head)"),
+    ("tibia/ICL_MRI_tibia_r.stl", "femur", "looks like a tibia: a 394 mm bone with no head"),
+])
+def test_the_other_bone_asked_for_exits_2_naming_what_the_mesh_looks_like(tmp_path, capsys, path, asked, looks):
+    from bonecad.run.cli import main
+
+    mesh = DATA / path
+    if not mesh.exists():
+        pytest.skip(f"{mesh} is absent")
+    assert main(["frame", str(mesh), "--bone", asked, "--out", str(tmp_path / "out"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert str(mesh) in err and f"--bone {asked}, but the mesh {looks}" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def leg_stl(tmp_path_factory):
+    """ICL's leg as one mesh file of five bodies (tibia, fibula, femur, patella, talus; the raw MRI meshes)."""
+    import trimesh
+
+    from tests.legs import LEGS, leg_files_present
+
+    if not leg_files_present("ICL"):
+        pytest.skip(f"ICL's leg files under {DATA} are absent")
+    path = tmp_path_factory.mktemp("leg") / "ICL_leg.stl"
+    trimesh.util.concatenate([trimesh.load(DATA / name, force="mesh") for name in LEGS["ICL"][0]]).export(path)
+    return path
+
+
+def test_bone_femur_on_a_leg_keeps_the_femur(leg_stl, tmp_path):
+    from bonecad.run.cli import main
+
+    assert main(["frame", str(leg_stl), "--bone", "femur", "--out", str(tmp_path / "out"), "-q"]) == 0
+    frame = json.loads((tmp_path / "out" / "frame.json").read_text())
+    kept, *dropped = frame["input"]["bodies"]
+    assert frame["bone"] == "femur" and frame["side"] == "right"
+    assert kept["role"] == "femur" and kept["triangles"] == frame["input"]["triangles"] == 29400
+    assert sorted(b["role"] for b in dropped) == ["fibula", "patella", "talus", "tibia"]
+    assert 24.0 < frame["head"]["radius_mm"] < 28.0
+
+
+def test_bone_auto_on_a_leg_keeps_the_tibia_and_names_the_femur(leg_stl, tmp_path):
+    """--bone auto models a leg by its tibia, as before the femur came; the femur it drops is named, with the
+    option that keeps it."""
+    from bonecad.run.cli import main
+
+    assert main(["frame", str(leg_stl), "--out", str(tmp_path / "out"), "-q"]) == 0
+    frame = json.loads((tmp_path / "out" / "frame.json").read_text())
+    assert frame["input"]["bodies"][0]["role"] == "tibia" and "head" not in frame
+    dropped = frame["input"]["repairs"][-1]
+    assert dropped.startswith("dropped ") and "femur (29400 triangles" in dropped
+    assert dropped.endswith("; --bone femur keeps the femur")
+
+
 @pytest.fixture(scope="module")
 def moved_femur(settings):
     """The smallest femur (ICL MRI, 29 k triangles), and the same mesh turned by 67 degrees about a skew axis

@@ -41,9 +41,9 @@ from bonecad.export.viewer import ViewMesh, input_view, model_view, viewer_html
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
 from bonecad.mesh.working import with_working_copy
-from bonecad.run.bones import bone_frame, bone_settings
+from bonecad.run.bones import bone_frame, bone_settings, kept_body
 from bonecad.run.executor import Executor, InProcess, executor_for
-from bonecad.settings import Settings
+from bonecad.settings import Settings, load_profile
 from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
 
@@ -150,7 +150,7 @@ def load_input(path: str | Path, settings: Settings, *, units: Units = "auto") -
     surface denser than the tolerance needs, ``mesh.working``)."""
     if is_volume(path):
         return segment_ct(path, settings)
-    return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
+    return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units, keep=kept_body(settings))
 
 
 def run_segment(path: str | Path, out_mesh: str | Path, settings: Settings) -> BoneMesh:
@@ -165,9 +165,9 @@ def run_segment(path: str | Path, out_mesh: str | Path, settings: Settings) -> B
 
 
 def inspect(path: str | Path, settings: Settings, *, units: Units = "auto") -> dict:
-    """What ``bonecad inspect`` prints: the input summary, the tibia's side and frame figures."""
-    bone = load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
-    frame = bone_frame(bone, settings)
+    """What ``bonecad inspect`` prints: the input summary, the bone's side and frame figures."""
+    bone = load_bone(path, units=units, settings=settings.mesh, plausible=settings.units, keep=kept_body(settings))
+    frame = bone_frame(bone, bone_settings(bone, settings))
     summary = bone.summary()
     summary["bone"] = frame.bone
     summary["side"] = frame.side
@@ -488,7 +488,8 @@ def _model_folder(folder: Path, mesh: Path | None, settings: Settings):
         raise InputError(f"not a bonecad reconstruction folder (tspline.json and frame.json): {exc}", folder) from exc
     if not source.exists():
         raise InputError(f"the mesh of this reconstruction, {source}, is gone: give it with --mesh", folder)
-    bone = load_bone(source, settings=settings.mesh, plausible=settings.units)
+    bone = load_bone(source, settings=settings.mesh, plausible=settings.units,
+                     keep=load_profile(frame.get("bone", "tibia")).body)
     tube = tube.with_control_points((tube.control_points - origin) @ axes.T, tube.weights)
     return tube, axes, origin, bone
 
