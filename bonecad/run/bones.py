@@ -33,6 +33,15 @@ def bone_settings(bone: BoneMesh, settings: Settings) -> Settings:
     return replace(tuned, pipeline=replace(tuned.pipeline, bone=profile.frame))
 
 
+def named_bone(bone: BoneMesh, settings: Settings) -> BoneMesh:
+    """The bone with its kept body (the intake's first) named as the bone of ``settings`` (``bone_settings``
+    named it): a femur alone in its file, read with --bone auto, was kept by the tibia's rule."""
+    name = settings.pipeline.bone
+    if not bone.bodies or bone.bodies[0].role == name:
+        return bone
+    return replace(bone, bodies=(replace(bone.bodies[0], role=name), *bone.bodies[1:]))
+
+
 def bone_frame(bone: BoneMesh, settings: Settings) -> AnatomicalFrame:
     """The anatomical frame by the profile's strategy: ``settings.pipeline.bone`` as ``bone_settings`` named
     it ("auto" recognises it here)."""
