@@ -187,7 +187,7 @@ def test_bone_auto_on_a_leg_keeps_the_tibia_and_names_the_femur(leg_stl, tmp_pat
 
 @pytest.fixture(scope="module")
 def moved_femur(settings):
-    """The smallest femur (ICL MRI, 29 k triangles), and the same mesh turned by 67 degrees about a skew axis
+    """The smallest femur (ICL MRI, 29 k triangles), and the same mesh turned by 89 degrees about a skew axis
     and shifted: (bone, moved bone, rotation matrix, shift in mm)."""
     from scipy.spatial.transform import Rotation
 
@@ -316,3 +316,28 @@ def test_tibia_profile_changes_no_setting(settings):
     assert settings.for_bone(femur).tspline.max_rounds == 14  # the profile's own setting, over the defaults
     assert settings.for_bone(femur).curves == settings.curves
 
+
+
+def test_femur_report_names_the_femur_and_its_origin(femur_run):
+    """The report's heights are above the knee centre (the femur profile's origin), the kept body is the
+    femur, and no tibia landmark is named on the page."""
+    page = (femur_run / "report.html").read_text()
+    assert "mm above the knee centre" in page
+    assert "plafond" not in page and "plateau" not in page
+    report = json.loads((femur_run / "report.json").read_text())
+    assert report["input"]["bodies"][0]["role"] == "femur"
+
+
+def test_femur_patch_offers_the_femur_regions(femur_run, tmp_path, capsys):
+    """A tibia's plate region on a femur exits 2 naming the femur's regions; the lateral distal femur plate's
+    footprint is an exact patch of the T-spline that thickens into a valid plate blank."""
+    from bonecad.run.cli import main
+
+    assert main(["patch", str(femur_run), "--region", "anteromedial_distal_tibia", "--out", str(tmp_path / "no"),
+                 "-q"]) == 2
+    assert "not on a femur; the femur's named regions are ['lateral_distal_femur']" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+    assert main(["patch", str(femur_run), "--region", "lateral_distal_femur", "--out", str(tmp_path / "p"), "-q"]) == 0
+    patch = json.loads((tmp_path / "p" / "patch.json").read_text())
+    assert patch["plate_blank"]["valid"] and patch["plate_blank"]["solids"] == 1
+    assert patch["deviation_from_tspline_mm"] < 1e-6 and patch["deviation_from_mesh"]["max_mm"] < 1.0
