@@ -1,8 +1,11 @@
-"""The femur (issue 22): recognition, frame and landmarks on the four femurs of ../shared/data/femur,
-rigid-motion equivariance, and the whole pipeline on the smallest CT femur.
+"""The femur (issue 22): recognition (and --bone naming the other bone: exit 2), a leg's femur kept with
+--bone femur, frame and landmarks on the four femurs of ../shared/data/femur, rigid-motion equivariance
+of the frame and of the fitted T-spline, and the whole pipeline on the smallest CT femur (with its report
+and its plate region).
 
-The full reconstruction runs on LHDL_CT_femur_r only (70 k triangles, ~70 s on a quiet machine); the
-other three femurs' model figures are measured by ``benchmarks/bench_pipeline.py femurs`` (README).
+The full reconstruction runs on LHDL_CT_femur_r only (70 k triangles, ~70 s on a quiet machine; a second
+femur would cost as much, over the suite's budget); the other three femurs' model figures are measured by
+``benchmarks/bench_pipeline.py femurs`` (README).
 """
 from __future__ import annotations
 
