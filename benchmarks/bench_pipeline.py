@@ -19,11 +19,12 @@ beside its own subject's tibia (the bones the intake keeps: LHDL 70 k / 48 k tri
 15 k): the CPU time of ``reconstruct`` per triangle of each, and their ratio (target: a femur at
 most 1.5 times a tibia of the same size), with each bone's model checks as above (share within
 0.25 mm, max, the STEP solid re-read: valid, closed; the seams' classes, G2 away from the caps).
-Measured (one run each, shared host): LHDL femur 32.3 s, tibia 23.4 s CPU, ratio 0.94 per triangle;
+Measured (one run each, shared host): LHDL femur 52.6 s, tibia 48.5 s CPU, ratio 0.74 per triangle
+(an earlier run: 32.3 and 23.4 s, 0.94);
 ICL 73.9 s and 46.7 s, ratio 0.80 (femur T-spline 0.9900 within 0.25 mm, max 0.633 mm, one valid
 solid with no free edge, 61 seams G2 away from the caps; an earlier run: 52.5 and 34.1 s, 0.78);
 JIA 100.1 s and 64.8 s, ratio 1.09 (0.8646, max 1.081 mm: the staircase, another helper's; 143 G2
-seams); LHDL femur 52.6 s (0.9970, max 0.910 mm, 20 G2 seams).
+seams); LHDL's femur 0.9970 within 0.25 mm, max 0.910 mm, 20 G2 seams.
 
 Run: python benchmarks/bench_pipeline.py [--repeats N] [MESH.stl ... | all | femurs [NAME ...]]
 """
