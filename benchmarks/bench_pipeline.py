@@ -24,7 +24,8 @@ Measured (one run each, shared host): LHDL femur 52.6 s, tibia 48.5 s CPU, ratio
 ICL 73.9 s and 46.7 s, ratio 0.80 (femur T-spline 0.9900 within 0.25 mm, max 0.633 mm, one valid
 solid with no free edge, 61 seams G2 away from the caps; an earlier run: 52.5 and 34.1 s, 0.78);
 JIA 100.1 s and 64.8 s, ratio 1.09 (0.8646, max 1.081 mm: the staircase, another helper's; 143 G2
-seams); LHDL's femur 0.9970 within 0.25 mm, max 0.910 mm, 20 G2 seams.
+seams); LHDL's femur 0.9970 within 0.25 mm, max 0.910 mm, 20 G2 seams; TLEM2 72.2 s and 55.1 s,
+ratio 0.68 (0.9920, max 0.799 mm, 31 G2 seams).
 
 Run: python benchmarks/bench_pipeline.py [--repeats N] [MESH.stl ... | all | femurs [NAME ...]]
 """
