@@ -244,12 +244,13 @@ class AnalysisSettings:
 
 @dataclass(frozen=True)
 class PatchSettings:
-    """``bonecad patch``: named regions (height from, to in mm above the plafond centre; angle from, to in
+    """``bonecad patch``: named regions (height from, to in mm above the frame's origin; angle from, to in
     degrees from lateral towards anterior), the patch's samples for its deviation from the mesh (per
     direction), and the plate blank it must thicken into (mm)."""
 
     anteromedial_distal_tibia: tuple[float, float, float, float]
     anterolateral_distal_tibia: tuple[float, float, float, float]
+    lateral_distal_femur: tuple[float, float, float, float]
     mesh_samples: int
     plate_thickness_mm: float
 
@@ -333,16 +334,21 @@ class Settings:
 @dataclass(frozen=True)
 class BoneProfile:
     """What differs per bone (``data/bones/<name>.toml``): how to recognise it and its ends, the frame
-    strategy and its centreline, the side rule, the regions' names, and settings of its own."""
+    strategy and its centreline, the side rule, the frame's origin (heights are mm above it), the regions'
+    names, the named patch regions on it, and settings of its own. body: the
+    body the intake keeps from a mesh of several bones (``mesh.intake.prepare_bone``'s ``keep``)."""
 
     name: str
     description: str
     wider_end: Literal["proximal", "distal"]
     narrow_end: str
+    body: Literal["tibia", "femur"]
     frame: Literal["tibia", "femur"]
     centreline: Literal["straight", "curved"]
     side_rule: str
+    origin: str
     regions: Mapping[str, str]
+    patch_regions: tuple[str, ...]
     settings: Mapping[str, Any]
 
 
@@ -356,9 +362,11 @@ def load_profile(name: str) -> BoneProfile:
         name=data["name"], description=data["description"],
         wider_end=_typed(recognise["wider_end"], Literal["proximal", "distal"], f"{name}.wider_end", None),
         narrow_end=recognise["narrow_end"],
+        body=_typed(recognise["body"], Literal["tibia", "femur"], f"{name}.body", None),
         frame=_typed(frame["strategy"], Literal["tibia", "femur"], f"{name}.strategy", None),
         centreline=_typed(frame["centreline"], Literal["straight", "curved"], f"{name}.centreline", None),
-        side_rule=frame["side_rule"], regions=dict(data["regions"]), settings=dict(data.get("settings", {})))
+        side_rule=frame["side_rule"], origin=frame["origin"], regions=dict(data["regions"]),
+        patch_regions=tuple(data["patch"]["regions"]), settings=dict(data.get("settings", {})))
 
 
 def _read_defaults() -> dict[str, Any]:

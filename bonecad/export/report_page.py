@@ -15,6 +15,8 @@ import html
 from pathlib import Path
 from typing import Any
 
+from bonecad.settings import load_profile
+
 #: names of unit vectors in the frame (the rest of its triples are points, scanner mm)
 _DIRECTIONS = {"lateral", "anterior", "proximal", "direction", "normal", "major_direction"}
 #: the deviation's two directions, as the page names them
@@ -145,9 +147,9 @@ def _input_section(summary: dict[str, Any]) -> str:
     bodies = summary.get("bodies") or []
     rows = [{"quantity": k.replace("_", " "), "value": v} for k, v in summary.items()
             if k not in ("bodies", "repairs") and not isinstance(v, (list, dict))]
-    kept = [{"body": b.get("role"), "kept": b.get("role") == "tibia", "triangles": b.get("triangles"),
+    kept = [{"body": b.get("role"), "kept": i == 0, "triangles": b.get("triangles"),  # the intake's first body
              "volume cm3": None if b.get("volume_mm3") is None else b["volume_mm3"] / 1000,
-             "length mm": b.get("length_mm")} for b in bodies]
+             "length mm": b.get("length_mm")} for i, b in enumerate(bodies)]
     repairs = summary.get("repairs") or []
     parts = ["<div class='card'><h3>Input</h3>", table(rows)]
     if kept:
@@ -224,13 +226,14 @@ CAPTIONS = {
              "grey.",
     "curves": "Curve plan: the contour curves the models are built from, on the input mesh from the front and "
               "the lateral side (hidden parts faint), coloured by region; dashed: the region boundaries (mm "
-              "above the plafond centre).",
+              "above the {origin}).",
 }
 
 
-def figures_section(figures: dict[str, dict[str, Path]], tolerance_mm: float | None) -> str:
+def figures_section(figures: dict[str, dict[str, Path]], tolerance_mm: float | None, origin: str) -> str:
     """Every figure (``figures``: model, "" for the run's own, -> name -> PNG), grouped by kind in the
-    order of :data:`CAPTIONS` (other names after them), each with its caption."""
+    order of :data:`CAPTIONS` (other names after them), each with its caption; ``origin``: the frame's
+    origin (the bone profile's), which heights are above."""
     order = {name: i for i, name in enumerate(CAPTIONS)}
     items = sorted(((order.get(name, len(order)), model, name, path) for model, named in figures.items()
                     for name, path in named.items()), key=lambda item: item[0])
@@ -238,7 +241,7 @@ def figures_section(figures: dict[str, dict[str, Path]], tolerance_mm: float | N
     for _, model, name, path in items:
         template = CAPTIONS.get(name, "{model}: " + name if model else name)
         tolerance = "-" if tolerance_mm is None else f"{tolerance_mm:g}"
-        parts.append(_figure(template.format(model=model, tolerance=tolerance), path))
+        parts.append(_figure(template.format(model=model, tolerance=tolerance, origin=origin), path))
     return "".join(parts)
 
 
@@ -266,7 +269,8 @@ def render_html(report: dict[str, Any], figures: dict[str, dict[str, Path]], vie
     if report.get("comparison"):
         parts += ["<h2>NURBS versus T-spline</h2>", table(report["comparison"], ["quantity", "nurbs", "tspline"])]
     if any(figures.values()):
-        parts += ["<h2 id='figures'>Figures</h2>", figures_section(figures, tol["within_mm"] if tol else None)]
+        origin = load_profile(report.get("frame", {}).get("bone", "tibia")).origin  # a tibia's frame.json names no bone
+        parts += ["<h2 id='figures'>Figures</h2>", figures_section(figures, tol["within_mm"] if tol else None, origin)]
     if report.get("contours"):
         parts += ["<h2>Contour curves</h2>",
                   table([{"region": r["region"], "curves": r["curves"], "control points per curve":

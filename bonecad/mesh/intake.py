@@ -1,4 +1,4 @@
-"""Read a bone mesh, clean it, find the tibia among its bodies, check units.
+"""Read a bone mesh, clean it, find the bone (the tibia or the femur) among its bodies, check units.
 
 Reading is trimesh's (STL ascii/binary, OBJ, PLY, OFF: its format readers,
 straight to arrays). Cleanup merges duplicate vertices, drops duplicate and
@@ -30,6 +30,7 @@ from bonecad.settings import MeshSettings, UnitsSettings
 log = logging.getLogger(__name__)
 
 Units = Literal["auto", "mm", "cm", "m"]
+Kept = Literal["tibia", "femur"]
 UNIT_SCALE_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off")
 
@@ -237,14 +238,15 @@ def load_bone(
     units: Units = "auto",
     settings: MeshSettings,
     plausible: UnitsSettings,
+    keep: Kept = "tibia",
 ) -> BoneMesh:
-    """Read, clean and check a tibia mesh; keep the tibia body (found by anatomy), report the others.
+    """Read, clean and check a bone mesh; keep the ``keep`` body (found by anatomy), report the others.
 
     Raises InputError (naming the file) for unreadable files, wrong units, a
-    tibia broken into pieces, or a tibia fused to a neighbouring bone.
+    tibia broken into pieces, or a bone fused to a neighbouring bone.
     """
     vertices, faces = read_mesh_file(path)
-    return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible)
+    return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible, keep=keep)
 
 
 def prepare_bone(
@@ -255,10 +257,13 @@ def prepare_bone(
     units: Units = "auto",
     settings: MeshSettings,
     plausible: UnitsSettings,
+    keep: Kept = "tibia",
 ) -> BoneMesh:
-    """Clean raw mesh arrays and keep the tibia body (see ``load_bone``); ``source`` names them in errors.
+    """Clean raw mesh arrays and keep one body (see ``load_bone``); ``source`` names them in errors.
 
-    plausible : the tibia length range that tells the units."""
+    plausible : the tibia length range that tells the units.
+    keep : the body kept from a leg (``BoneProfile.body``): the tibia, found first (the other bodies' roles
+        are read from their place beside it), or the femur it names; a single body is kept either way."""
     path = Path(source) if source else None
     vertices, faces, edges, repairs = _clean(vertices, faces, settings.max_hole_edges)
     bodies = _bodies(vertices, faces, edges)
@@ -277,6 +282,16 @@ def prepare_bone(
     work = bone.work  # the anatomy is read on the working copy
     up = proximal_direction(work.vertices, work.faces, shapes[t].centroid, shapes[t].axis)
     roles = body_roles(shapes, t, up, settings)
+    femurs = [i for i, role in enumerate(roles) if role == "femur"]
+    k = t
+    if keep == "femur":
+        k = max(femurs, key=lambda i: shapes[i].volume) if femurs else t
+        roles[k] = "femur"
+        if k != t:
+            kept = bodies[k]
+            bone = with_working_copy(BoneMesh(vertices=kept.vertices * scale, faces=kept.faces, source=str(source),
+                                              units="mm", watertight=kept.watertight), settings)
+            work = bone.work
     infos = [
         BodyInfo(
             triangles=int(len(body.faces)),
@@ -287,10 +302,10 @@ def prepare_bone(
         )
         for body, shape, role in zip(bodies, shapes, roles)
     ]
-    order = np.argsort([role != "tibia" for role in roles], kind="stable")  # the tibia first, then by volume
+    order = np.argsort([i != k for i in range(len(roles))], kind="stable")  # the kept body first, then by volume
     infos = [infos[i] for i in order]
     broken = [i for i in infos if i.role == "broken piece"]
-    if broken:
+    if broken and keep == "tibia":
         sizes = ", ".join(f"{b.length_mm:.0f} mm / {b.volume_mm3 / 1000:.0f} cm3" for b in (infos[0], *broken))
         raise InputError(
             f"the tibia seems broken into {1 + len(broken)} large pieces along its axis ({sizes}); "
@@ -302,7 +317,7 @@ def prepare_bone(
     if dropped:
         repairs.append("dropped " + ", ".join(
             f"{i.role} ({i.triangles} triangles, {i.volume_mm3 / 1000:.1f} cm3, {i.length_mm:.0f} mm)"
-            for i in dropped))
+            for i in dropped) + ("; --bone femur keeps the femur" if keep == "tibia" and femurs else ""))
     if scale != 1.0:
         repairs.append(f"scaled by {scale:g} to mm (--units {units})")
     return replace(bone, bodies=tuple(infos), repairs=tuple(repairs))

@@ -8,6 +8,7 @@ from matplotlib.lines import Line2D
 
 from bonecad.render.figures import View, panel_figure, save_figure, render_mesh_values, screen_axes
 from bonecad.contours.curves import ContourSet
+from bonecad.settings import load_profile
 
 REGION_COLOURS = {"distal": "tab:blue", "shaft": "tab:green", "proximal": "tab:red"}
 #: the plan's views: from the front and from the lateral side (bone coordinates: x lateral for either side)
@@ -17,7 +18,7 @@ PLAN_VIEWS: tuple[View, ...] = ("anterior", "lateral")
 def curves_png(path: str | Path, vertices: np.ndarray, faces: np.ndarray, contours: ContourSet, *,
                height_px: int = 1600) -> Path:
     """Draw every contour curve on the shaded mesh (both in bone coordinates, mm), hidden parts dimmed,
-    and the region boundaries (heights above the plafond centre, mm) as dashed lines."""
+    and the region boundaries (heights above the frame's origin, mm: the bone profile's) as dashed lines."""
     frame = np.eye(3)  # bone coordinates: x lateral, y anterior, z proximal
     rasters = render_mesh_values(vertices, faces, np.zeros(len(vertices)), frame, PLAN_VIEWS, height_px=height_px)
     fig, axes = panel_figure(rasters, height_px, extra_width_px=170)
@@ -53,7 +54,7 @@ def curves_png(path: str | Path, vertices: np.ndarray, faces: np.ndarray, contou
                         xytext=(0, 3), textcoords="offset points", va="bottom", fontsize=9)
         ax.set_title(f"{view} view")
         ax.set_xlabel("mm")
-    axes[0].set_ylabel("mm above the plafond centre")
+    axes[0].set_ylabel(f"mm above the {load_profile(contours.frame.bone).origin}")
     handles = [Line2D([], [], color=c, label=f"{r} curves") for r, c in REGION_COLOURS.items()]
     handles.append(Line2D([], [], color="k", ls="--", label="region boundary"))
     axes[-1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 0.6), fontsize=9)

@@ -16,6 +16,10 @@ from pathlib import Path
 
 from bonecad._version import __version__
 from bonecad.errors import BonecadError, InputError
+from bonecad.settings import BONES, load_profile
+
+#: what heights are above, per bone (its profile's frame origin), for the options' help
+ORIGINS = ", ".join(f"the {load_profile(b).origin} of a {b}" for b in BONES)
 
 log = logging.getLogger(__name__)
 #: the package logger the command line prints to stderr (every module logs under it)
@@ -67,9 +71,9 @@ def _add_stage(p: argparse.ArgumentParser) -> None:
 
 def _add_boundaries(p: argparse.ArgumentParser) -> None:
     p.add_argument("--distal-boundary", type=float, metavar="MM",
-                   help="height of the distal/shaft boundary above the plafond centre (default: from the anatomy)")
+                   help=f"height of the distal/shaft boundary above {ORIGINS} (default: from the anatomy)")
     p.add_argument("--proximal-boundary", type=float, metavar="MM",
-                   help="height of the shaft/proximal boundary above the plafond centre (default: from the anatomy)")
+                   help=f"height of the shaft/proximal boundary above {ORIGINS} (default: from the anatomy)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -127,12 +131,14 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Write one region of the bone surface as one untrimmed B-spline face, exact to "
                        "the T-spline, with its deviation from the mesh and a check that it thickens into a plate "
                        "blank: patch.step, patch.iges and patch.json into --out. The region: a named one of the "
-                       "[patch] settings, or a height range (mm above the plafond centre) and an angle range "
+                       f"[patch] settings on the bone, or a height range (mm above {ORIGINS}) and an angle range "
                        "(degrees from lateral towards anterior: 90 anterior, 180 medial).")
     p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--region", help="a named region, e.g. anteromedial_distal_tibia")
-    p.add_argument("--height", type=float, nargs=2, metavar=("FROM", "TO"), help="heights, mm above the plafond")
+    p.add_argument("--region", help="a named region on the bone: " + "; ".join(
+        f"{b}: {', '.join(load_profile(b).patch_regions)}" for b in BONES))
+    p.add_argument("--height", type=float, nargs=2, metavar=("FROM", "TO"),
+                   help="heights, mm above the frame's origin (the plafond centre of a tibia)")
     p.add_argument("--angle", type=float, nargs=2, metavar=("FROM", "TO"), help="angles, degrees from lateral")
     p.add_argument("--mesh", type=Path, help="the mesh of a reconstruction folder, if it has moved")
     _add_common(p)

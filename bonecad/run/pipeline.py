@@ -41,9 +41,9 @@ from bonecad.export.viewer import ViewMesh, input_view, model_view, viewer_html
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
 from bonecad.mesh.working import with_working_copy
-from bonecad.run.bones import bone_frame, bone_settings
+from bonecad.run.bones import bone_frame, bone_settings, kept_body, named_bone
 from bonecad.run.executor import Executor, InProcess, executor_for
-from bonecad.settings import Settings
+from bonecad.settings import Settings, load_profile
 from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
 
@@ -150,7 +150,7 @@ def load_input(path: str | Path, settings: Settings, *, units: Units = "auto") -
     surface denser than the tolerance needs, ``mesh.working``)."""
     if is_volume(path):
         return segment_ct(path, settings)
-    return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
+    return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units, keep=kept_body(settings))
 
 
 def run_segment(path: str | Path, out_mesh: str | Path, settings: Settings) -> BoneMesh:
@@ -165,8 +165,10 @@ def run_segment(path: str | Path, out_mesh: str | Path, settings: Settings) -> B
 
 
 def inspect(path: str | Path, settings: Settings, *, units: Units = "auto") -> dict:
-    """What ``bonecad inspect`` prints: the input summary, the tibia's side and frame figures."""
-    bone = load_bone(path, units=units, settings=settings.mesh, plausible=settings.units)
+    """What ``bonecad inspect`` prints: the input summary, the bone's side and frame figures."""
+    bone = load_bone(path, units=units, settings=settings.mesh, plausible=settings.units, keep=kept_body(settings))
+    settings = bone_settings(bone, settings)
+    bone = named_bone(bone, settings)
     frame = bone_frame(bone, settings)
     summary = bone.summary()
     summary["bone"] = frame.bone
@@ -222,6 +224,7 @@ def reconstruct_bone(
         raise InputError("no model to build: [pipeline] models is empty")
     timings = timings if timings is not None else Timings()
     settings = bone_settings(bone, settings)  # the bone's profile: recognised when --bone is auto
+    bone = named_bone(bone, settings)
     ex = executor if executor is not None else executor_for(settings.pipeline.background_jobs)
     out_dir = Path(out_dir)
     with staged_output(out_dir) as stage_dir, ex:
@@ -468,8 +471,8 @@ def patch_region(settings: Settings, name: str | None, height_mm: tuple[float, f
 
 
 def _model_folder(folder: Path, mesh: Path | None, settings: Settings):
-    """The tube (bone coordinates), the frame's axes and origin and the mesh of a reconstruction's folder
-    (tspline.json, frame.json; the mesh named in frame.json unless ``mesh`` is given)."""
+    """The tube (bone coordinates), the frame's axes and origin, the mesh and the bone's name of a
+    reconstruction's folder (tspline.json, frame.json; the mesh named in frame.json unless ``mesh`` is given)."""
     import json
 
     from bonecad.splines.tspline import from_dict
@@ -490,9 +493,18 @@ def _model_folder(folder: Path, mesh: Path | None, settings: Settings):
         raise InputError(f"not a bonecad reconstruction folder (tspline.json and frame.json): {exc}", folder) from exc
     if not source.exists():
         raise InputError(f"the mesh of this reconstruction, {source}, is gone: give it with --mesh", folder)
-    bone = load_bone(source, settings=settings.mesh, plausible=settings.units)
+    bone = load_bone(source, settings=settings.mesh, plausible=settings.units,
+                     keep=load_profile(frame.get("bone", "tibia")).body)
     tube = tube.with_control_points((tube.control_points - origin) @ axes.T, tube.weights)
-    return tube, axes, origin, bone
+    return tube, axes, origin, bone, frame.get("bone", "tibia")  # a tibia's frame.json names no bone
+
+
+def _check_region_on(bone: str, region, settings: Settings, source: Path) -> None:
+    """InputError when ``region`` is a named region that is not on this bone (its profile lists them)."""
+    named = load_profile(bone).patch_regions
+    if region.name in vars(settings.patch) and region.name not in named:
+        raise InputError(f"region {region.name!r} is not on a {bone}; the {bone}'s named regions are {list(named)} "
+                         "(or give --height and --angle)", source)
 
 
 def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, region, *, mesh: Path | None = None,
@@ -512,9 +524,12 @@ def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, regio
 
     source = Path(source)
     if source.is_dir() and (source / "tspline.json").exists():
-        tube, axes, origin, bone = _model_folder(source, mesh, settings)
+        tube, axes, origin, bone, name = _model_folder(source, mesh, settings)
+        _check_region_on(name, region, settings, source)
     else:
         bone = load_input(source, settings, units=units)
+        settings = bone_settings(bone, settings)
+        _check_region_on(settings.pipeline.bone, region, settings, source)
         frame, contours, _ = frame_and_contours(bone, settings)
         model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
                                     apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
