@@ -23,7 +23,8 @@ Measured (one run each, shared host): LHDL femur 52.6 s, tibia 48.5 s CPU, ratio
 (an earlier run: 32.3 and 23.4 s, 0.94);
 ICL 73.9 s and 46.7 s, ratio 0.80 (femur T-spline 0.9900 within 0.25 mm, max 0.633 mm, one valid
 solid with no free edge, 61 seams G2 away from the caps; an earlier run: 52.5 and 34.1 s, 0.78);
-JIA 100.1 s and 64.8 s, ratio 1.09 (before the noise stop: 0.8646, max 1.081 mm; 143 G2 seams); LHDL's femur 0.9970 within 0.25 mm, max 0.910 mm, 20 G2 seams; TLEM2 72.2 s and 55.1 s,
+JIA 100.1 s and 64.8 s, ratio 1.09 (before the noise stop: 0.8646, max 1.081 mm;
+143 G2 seams); LHDL's femur 0.9970 within 0.25 mm, max 0.910 mm, 20 G2 seams; TLEM2 72.2 s and 55.1 s,
 ratio 0.68 (0.9920, max 0.799 mm, 31 G2 seams).
 Each model's verdict is printed as report.json states it: the JIA MRI femur (a 1 mm voxel staircase)
 stops at the data's noise and says so (mesh->T-spline 0.838 within 0.25 mm, max 1.075 mm, 9,011 control
