@@ -93,10 +93,15 @@ def test_every_good_bone_is_done(manifest_run):
     assert set(PARAMETER_NAMES) <= set(rows[0])
     for r in phantoms:
         assert 60.0 < r.parameters["plateau_width_mm"] < 95.0
-    # the template fit: every done bone's control points, in the template's one layout, the fit's figures
+    # the template fit: every done bone's control points, in the template's one layout, the fit's figures, and the
+    # surface it was fitted to (what ``shape-model build`` measures the generalisation against); none for the corrupt
     done = [r for r in result.records if r.status == "done"]
     points = [np.load(out / "points" / f"{r.bone_id}.npy") for r in done]
     assert len({p.shape for p in points}) == 1 and points[0].shape[1] == 3
+    assert sorted(p.stem for p in (out / "surface").iterdir()) == sorted(r.bone_id for r in done)
+    with np.load(out / "surface" / f"{done[0].bone_id}.npz") as surface:
+        assert surface["points"].shape[1] == 3 and len(surface["weights"]) == len(surface["points"])
+        assert np.all(surface["weights"] >= 0) and surface["weights"].sum() > 1e4  # mm^2: a tibia's surface
     assert all(r.figures["fit_share_within"] >= 0.99 for r in phantoms), [r.figures for r in phantoms]
 
 
