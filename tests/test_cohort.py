@@ -114,6 +114,10 @@ def test_a_shape_model_is_built_from_the_cohort_folder(manifest_run, tmp_path):
     doc = build_model_folder(tmp_path / "model", out, settings, figures=False)
     model = load_model(tmp_path / "model")
     assert doc["figures"]["bones"] == result.count("done") == len(model.bones)
+    # the cohort's surfaces: leave-one-out generalisation measured to each bone's surface, beside the baselines
+    gen = doc["figures"]["generalisation_rms_mm"]
+    assert isinstance(gen, dict) and set(doc["figures"]["per_bone"]) == set(model.bones), gen
+    assert 0.0 < gen["5"]["rms"] < doc["figures"]["baseline_mean_shape_rms_mm"]["rms"], doc["figures"]
     assert "length_mm" in model.parameter_names and not {"cpu_s", "wall_s"} & set(model.parameter_names)
     doc = json.loads((out / "cohort.json").read_text())
     assert doc["bones"] == len(result.records) and doc["settings"]["cohort"]["workers"] == 2
