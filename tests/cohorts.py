@@ -1,5 +1,5 @@
 """Synthetic cohorts of phantom tibias with varied design parameters (issue 21's tests and benchmarks): the 20
-varied phantoms of the measure and template tests (``varied_parameters``: every design parameter varied, slopes and
+varied phantoms of the measure tests (``varied_parameters``: every design parameter varied, slopes and
 torsion too; meshed once per test session, ``conftest.varied_phantoms``), and ``phantom_parameters`` (five varied)."""
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def varied(params: TibiaParameters) -> dict[str, float]:
     return {k: v for k, v in asdict(params).items() if k in VARIED}
 
 
-#: the varied phantoms of the measure and template tests (issue 21: 20 phantoms)
+#: the varied phantoms of the measure tests (issue 21: 20 phantoms)
 PHANTOMS = 20
 
 

@@ -60,7 +60,7 @@ def phantom_tspline_model(phantom, phantom_frame, phantom_contours):
 @pytest.fixture(scope="session")
 def varied_phantoms():
     """The 20 varied phantoms (``cohorts.varied_parameters``) meshed once for the session (shipped settings): the
-    measure's and the template's tests share them. [(TibiaParameters, BoneMesh)]"""
+    measure's tests use them. [(TibiaParameters, BoneMesh)]"""
     from bonecad.imaging.phantom_tibia import phantom_tibia
 
     from .cohorts import varied_parameters
