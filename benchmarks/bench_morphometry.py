@@ -23,7 +23,7 @@ from bonecad.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from tests.test_morphometry import varied_parameters  # noqa: E402
+from tests.cohorts import varied_parameters  # noqa: E402
 
 DATA = Path(os.environ.get("BONECAD_DATA", ROOT.parent / "shared" / "data")) / "tibia"
 

@@ -58,6 +58,18 @@ def phantom_tspline_model(phantom, phantom_frame, phantom_contours):
                                apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
 
 
+@pytest.fixture(scope="session")
+def varied_phantoms():
+    """The 20 varied phantoms (``cohorts.varied_parameters``) meshed once for the session (shipped settings): the
+    measure's tests use them. [(TibiaParameters, BoneMesh)]"""
+    from bonecad.imaging.phantom_tibia import phantom_tibia
+
+    from .cohorts import varied_parameters
+    from .defaults import SETTINGS
+
+    return [(p, phantom_tibia(p, settings=SETTINGS.mesh, plausible=SETTINGS.units)) for p in varied_parameters()]
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)

@@ -36,6 +36,19 @@ from .test_run_lifecycle import Run, cli, cli_env
 
 PHANTOMS = 12
 DEADLINE_S = 120.0  # any wait for a run of at most 12 bones; normally a few seconds
+#: The lifecycle tests (a bone that hangs, an interrupted run, a worker killed) fit the first, coarser template
+#: layout (2952 control points, a third of the shipped layout's fit CPU): they test the cohort's bookkeeping;
+#: the manifest run fits the shipped template.
+COARSE_TEMPLATE = {"s_intervals": 48, "shaft_s_intervals": 24, "distal_t_intervals": 16, "shaft_t_intervals": 30,
+                   "proximal_t_intervals": 28}
+LIFECYCLE = SETTINGS.replace("template", **COARSE_TEMPLATE)
+
+
+def _lifecycle_config(tmp_path: Path) -> Path:
+    """LIFECYCLE's settings as a --config file for the CLI."""
+    path = tmp_path / "coarse_template.toml"
+    path.write_text("[template]\n" + "".join(f"{k} = {v}\n" for k, v in COARSE_TEMPLATE.items()))
+    return path
 
 
 @pytest.fixture(scope="module")
@@ -93,10 +106,15 @@ def test_every_good_bone_is_done(manifest_run):
     assert set(PARAMETER_NAMES) <= set(rows[0])
     for r in phantoms:
         assert 60.0 < r.parameters["plateau_width_mm"] < 95.0
-    # the template fit: every done bone's control points, in the template's one layout, the fit's figures
+    # the template fit: every done bone's control points, in the template's one layout, the fit's figures, and the
+    # surface it was fitted to (what ``shape-model build`` measures the generalisation against); none for the corrupt
     done = [r for r in result.records if r.status == "done"]
     points = [np.load(out / "points" / f"{r.bone_id}.npy") for r in done]
     assert len({p.shape for p in points}) == 1 and points[0].shape[1] == 3
+    assert sorted(p.stem for p in (out / "surface").iterdir()) == sorted(r.bone_id for r in done)
+    with np.load(out / "surface" / f"{done[0].bone_id}.npz") as surface:
+        assert surface["points"].shape[1] == 3 and len(surface["weights"]) == len(surface["points"])
+        assert np.all(surface["weights"] >= 0) and surface["weights"].sum() > 1e4  # mm^2: a tibia's surface
     assert all(r.figures["fit_share_within"] >= 0.99 for r in phantoms), [r.figures for r in phantoms]
 
 
@@ -109,6 +127,10 @@ def test_a_shape_model_is_built_from_the_cohort_folder(manifest_run, tmp_path):
     doc = build_model_folder(tmp_path / "model", out, settings, figures=False)
     model = load_model(tmp_path / "model")
     assert doc["figures"]["bones"] == result.count("done") == len(model.bones)
+    # the cohort's surfaces: leave-one-out generalisation measured to each bone's surface, beside the baselines
+    gen = doc["figures"]["generalisation_rms_mm"]
+    assert isinstance(gen, dict) and set(doc["figures"]["per_bone"]) == set(model.bones), gen
+    assert 0.0 < gen["5"]["rms"] < doc["figures"]["baseline_mean_shape_rms_mm"]["rms"], doc["figures"]
     assert "length_mm" in model.parameter_names and not {"cpu_s", "wall_s"} & set(model.parameter_names)
     doc = json.loads((out / "cohort.json").read_text())
     assert doc["bones"] == len(result.records) and doc["settings"]["cohort"]["workers"] == 2
@@ -194,7 +216,7 @@ def test_a_bone_that_hangs_is_failed_and_the_run_ends(tmp_path, phantoms):
     folder = _folder(tmp_path, phantoms, 3)
     shutil.copy(phantoms[3], folder / "hang.stl")
     # a loaded machine: a worker's first bone (its imports and the bone) can take 10 s
-    settings = SETTINGS.replace("cohort", workers=2, timeout_s=20.0)
+    settings = LIFECYCLE.replace("cohort", workers=2, timeout_s=20.0)
     started = time.perf_counter()
     result = run_cohort(folder, tmp_path / "out", settings, job=hanging_job)
     hang = next(r for r in result.records if r.bone_id == "hang")
@@ -216,7 +238,8 @@ def test_an_interrupted_run_resumes_where_it_stopped(tmp_path, phantoms):
     folder = _folder(tmp_path, phantoms, PHANTOMS)
     out = tmp_path / "out"
     journal = out / ".bones"
-    run = Run(cli("cohort", folder, "--out", out, "--workers", 1), cwd=tmp_path)
+    config = _lifecycle_config(tmp_path)
+    run = Run(cli("cohort", folder, "--out", out, "--workers", 1, "--config", config), cwd=tmp_path)
     processes: set[psutil.Process] = set()
     try:
         deadline = time.monotonic() + DEADLINE_S
@@ -237,19 +260,19 @@ def test_an_interrupted_run_resumes_where_it_stopped(tmp_path, phantoms):
     first = {p.name: p.stat().st_mtime_ns for p in journal.glob("*.json")}
     assert 0 < len(first) < PHANTOMS and not (out / "cohort.csv").exists()
 
-    rerun = subprocess.run(cli("cohort", folder, "--out", out, "--workers", 2), env=cli_env(), text=True,
-                           capture_output=True, timeout=DEADLINE_S)
+    rerun = subprocess.run(cli("cohort", folder, "--out", out, "--workers", 2, "--config", config), env=cli_env(),
+                           text=True, capture_output=True, timeout=DEADLINE_S)
     assert rerun.returncode == 0, rerun.stderr
     assert f"{PHANTOMS} bones: {PHANTOMS} done, 0 bad input, 0 failed ({len(first)} from the journal)" in rerun.stdout
     assert {name: (journal / name).stat().st_mtime_ns for name in first} == first  # not recomputed
     assert len(list(csv.DictReader((out / "cohort.csv").open()))) == PHANTOMS
 
     sources = cohort_sources(folder)  # a rerun redoes a bone when a stage's setting or the file changed
-    assert all(Journal(out, settings_hash(SETTINGS.replace("cohort", workers=3))).finished(s) for s in sources)
-    changed = Journal(out, settings_hash(SETTINGS.replace("anatomy", plateau_search_share=0.07)))
+    assert all(Journal(out, settings_hash(LIFECYCLE.replace("cohort", workers=3))).finished(s) for s in sources)
+    changed = Journal(out, settings_hash(LIFECYCLE.replace("anatomy", plateau_search_share=0.07)))
     assert not any(changed.finished(s) for s in sources)
     os.utime(sources[0].path)
-    assert Journal(out, settings_hash(SETTINGS)).finished(sources[0]) is None
+    assert Journal(out, settings_hash(LIFECYCLE)).finished(sources[0]) is None
 
 
 # --- an existing scheduler, and a worker killed mid-bone --------------------------------------------------
@@ -303,7 +326,7 @@ def test_a_worker_killed_mid_bone_loses_nothing(tmp_path, phantoms):
 
             killer = threading.Thread(target=kill_one_mid_bone, daemon=True)
             killer.start()
-            result = run_cohort(folder, tmp_path / "out", SETTINGS, scheduler=address, job=slow_job)
+            result = run_cohort(folder, tmp_path / "out", LIFECYCLE, scheduler=address, job=slow_job)
             killer.join(10)
     finally:
         for p in procs[::-1]:

@@ -11,16 +11,16 @@ from scipy.spatial.transform import Rotation
 
 import bonecad
 from bonecad.anatomy.morphometry import PARAMETER_NAMES, PARAMETERS, measure_tibia
-from bonecad.imaging.phantom_tibia import TibiaParameters, design_measurements, phantom_tibia
+from bonecad.imaging.phantom_tibia import TibiaParameters, design_measurements
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.run.cli import main
 
+from .cohorts import PHANTOMS, varied_parameters
 from .conftest import TIBIA_DIR, real_mesh_params
 from .defaults import SETTINGS
 from .test_frame import _moved
 
 MORPH = SETTINGS.morphometry
-PHANTOMS = 20
 # The names other code builds on (the cohort table, the shape model's regression, `morph`'s flags).
 NAMES = ("length_mm", "max_length_mm", "plateau_width_mm", "medial_plateau_depth_mm", "lateral_plateau_depth_mm",
          "medial_posterior_slope_deg", "lateral_posterior_slope_deg", "plafond_width_mm", "plafond_depth_mm",
@@ -29,6 +29,7 @@ NAMES = ("length_mm", "max_length_mm", "plateau_width_mm", "medial_plateau_depth
 # Published adult ranges (README, `measure`: mean +- 2 SD, the union over the cited studies) of the parameters
 # for which a source was found.
 PUBLISHED = {
+    "max_length_mm": (312.0, 482.0),
     "plateau_width_mm": (59.7, 95.4),
     "medial_plateau_depth_mm": (37.7, 61.5),
     "lateral_plateau_depth_mm": (33.1, 53.1),
@@ -41,32 +42,16 @@ PUBLISHED = {
 TOLERANCE = 1.0
 
 
-def varied_parameters(count: int = PHANTOMS) -> list[TibiaParameters]:
-    """``count`` phantoms whose parameters span adult tibias (deterministic)."""
-    rng = np.random.default_rng(21)
-    u = rng.uniform(size=(count, 13))
-    lerp = lambda i, lo, hi: lo + u[:, i] * (hi - lo)  # noqa: E731
-    columns = dict(
-        length_mm=lerp(0, 330.0, 400.0), plateau_width_mm=lerp(1, 70.0, 84.0), plateau_depth_mm=lerp(2, 46.0, 56.0),
-        plateau_posterior_offset_mm=lerp(3, 5.0, 9.0), shaft_width_mm=lerp(4, 20.0, 25.0),
-        shaft_depth_mm=lerp(5, 23.0, 28.0), distal_width_mm=lerp(6, 46.0, 54.0), distal_depth_mm=lerp(7, 36.0, 42.0),
-        malleolus_length_mm=lerp(8, 12.0, 16.0), tuberosity_height_mm=lerp(9, 7.0, 11.0),
-        medial_slope_deg=lerp(10, 0.0, 12.0), lateral_slope_deg=lerp(11, 0.0, 10.0), torsion_deg=lerp(12, 0.0, 40.0),
-    )
-    return [TibiaParameters(**{k: float(round(v[i], 2)) for k, v in columns.items()}) for i in range(count)]
-
-
 def _measure(bone: BoneMesh) -> dict[str, float]:
     frame = bonecad.anatomical_frame(bone)
     return measure_tibia(bone, frame, MORPH).values()
 
 
 @pytest.fixture(scope="module")
-def phantom_errors() -> dict[str, np.ndarray]:
+def phantom_errors(varied_phantoms) -> dict[str, np.ndarray]:
     """Measured minus design value of every parameter of the 20 varied phantoms (mm, degrees)."""
     errors: dict[str, list[float]] = {name: [] for name in PARAMETER_NAMES}
-    for params in varied_parameters():
-        bone = phantom_tibia(params, settings=SETTINGS.mesh, plausible=SETTINGS.units)
+    for params, bone in varied_phantoms:
         measured, design = _measure(bone), design_measurements(params, MORPH)
         for name in PARAMETER_NAMES:
             errors[name].append(measured[name] - design[name])
@@ -97,6 +82,7 @@ def test_measure_recovers_the_design_of_varied_phantoms(phantom_errors, name):
 def test_varied_phantoms_span_the_parameters():
     """The cohort is varied: lengths, widths, slopes and torsion spread over most of their ranges."""
     params = varied_parameters()
+    assert len(params) == PHANTOMS
     spread = {"length_mm": 40.0, "plateau_width_mm": 8.0, "medial_slope_deg": 7.0, "lateral_slope_deg": 6.0,
               "torsion_deg": 25.0}
     for field, least in spread.items():

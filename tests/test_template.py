@@ -13,7 +13,7 @@ from bonecad.run.cli import main
 from tests.cohorts import phantom_parameters, varied
 from tests.defaults import SETTINGS
 
-from .conftest import REAL_MESHES, real_mesh_params
+from .conftest import real_mesh_params
 
 pytestmark = pytest.mark.slow
 
@@ -175,12 +175,7 @@ def test_morph_refuses_out_of_range_or_unknown_parameters(model_dir, tmp_path, c
     assert not out.exists()
 
 
-@pytest.mark.parametrize("path", [p for p in real_mesh_params()
-                                  if p.values[0] is None or "JIA" not in p.values[0].name] + [
-    pytest.param(p, id=p.stem, marks=pytest.mark.xfail(
-        strict=True, reason="JIA is a 1 mm voxel staircase: its steps lie up to 0.7 mm from any smooth surface "
-                            "through them; the template reaches 95 % within 0.5 mm"))
-    for p in REAL_MESHES if "JIA" in p.name])
+@pytest.mark.parametrize("path", real_mesh_params())
 def test_template_fits_real_tibias_within_half_mm(path):
     import bonecad
     from bonecad.run.shapes import template_fit_bone

@@ -165,10 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "carried into the table) on a Dask cluster: intake or CT segmentation and the anatomical "
                        "frame, one bone per task. Writes cohort.csv (one row per bone: id, path, status, error, "
                        "side, parameters, fit figures), cohort.json (the same, the failures, the settings and the "
-                       "versions) and points/<id>.npy into --out. A bad or failing bone is reported and the rest "
-                       "completes; each finished bone is journalled in OUT/.bones, so an interrupted run resumes "
-                       "where it stopped. Exit status: 0 every bone done, 2 some bad input, 1 some failed (the "
-                       "table is written in every case).")
+                       "versions), points/<id>.npy and surface/<id>.npz into --out. A bad or failing bone is "
+                       "reported and the rest completes; each finished bone is journalled in OUT/.bones, so an "
+                       "interrupted run resumes where it stopped. Exit status: 0 every bone done, 2 some bad "
+                       "input, 1 some failed (the table is written in every case).")
     p.add_argument("input", type=Path, nargs="?", help="folder of bones or CSV manifest (not with --demo)")
     p.add_argument("--out", type=Path, required=True, help="output folder (and the journal of a resumed run)")
     p.add_argument("--workers", type=int, metavar="N",

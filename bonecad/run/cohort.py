@@ -2,7 +2,7 @@
 
 source folder | manifest.csv -> BoneSource per bone -> cohort_job on a worker -> BoneRecord
     -> journal OUT/.bones/<id>.json (+ <id>.npy), as each bone finishes
-    -> OUT/cohort.csv, OUT/cohort.json, OUT/points/<id>.npy, when every bone has ended
+    -> OUT/cohort.csv, OUT/cohort.json, OUT/points/<id>.npy, OUT/surface/<id>.npz, when every bone has ended
 
 The job never raises for a bone's own failure: a bad input is recorded as
 "bad input" (exit class 2) with its message, any other error as "failed"
@@ -17,7 +17,7 @@ result arrives, with the hash of the settings (all but ``[cohort]``, and
 bonecad's version) and the source's size and modification time. A rerun into
 the same folder takes a done or bad-input bone from the journal when all
 three match, and runs the others again (failed ones, a changed file, changed
-settings). The table and the points are written all or nothing at the end.
+settings). The table, the points and the surfaces are written all or nothing at the end.
 """
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ from bonecad.errors import InputError
 from bonecad.mesh.intake import MESH_SUFFIXES, Units
 from bonecad.run.bones import bone_frame, bone_settings
 from bonecad.run.cluster import DaskExecutor
-from bonecad.run.shapes import fit_figures, template_fit_bone
+from bonecad.run.shapes import fit_figures, load_surface, save_surface, template_fit_bone
 from bonecad.run.executor import Executor
 from bonecad.run.pipeline import VOLUME_SUFFIXES, load_input
 from bonecad.settings import Settings
@@ -79,7 +79,9 @@ class BoneSource:
 @dataclass(frozen=True, eq=False)
 class BoneRecord:
     """What the cohort keeps of one bone: status, error, parameters (mm, degrees), fit figures, the template's
-    control points ((n, 3) mm, bone coordinates) when fitted, CPU and wall seconds, and the worker (host:pid)."""
+    control points ((n, 3) mm, bone coordinates) and the surface it was fitted to (points (m, 3) mm in bone
+    coordinates and their area weights (m,) mm^2: ``template.surface_targets``) when fitted, CPU and wall seconds,
+    and the worker (host:pid)."""
 
     bone_id: str
     source: str
@@ -90,6 +92,7 @@ class BoneRecord:
     parameters: Mapping[str, float] = field(default_factory=dict)
     figures: Mapping[str, float] = field(default_factory=dict)
     control_points: np.ndarray | None = None
+    surface: tuple[np.ndarray, np.ndarray] | None = None
     cpu_s: float = 0.0
     wall_s: float = 0.0
     worker: str = ""
@@ -99,7 +102,7 @@ class BoneRecord:
         return EXIT_CLASS[self.status]
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready, without the control points (they go to a .npy file)."""
+        """JSON-ready, without the control points and the surface (they go to .npy and .npz files)."""
         return {"id": self.bone_id, "path": self.source, "status": self.status, "exit_class": self.exit_class,
                 "error": self.error, "detail": self.detail, "side": self.side,
                 "parameters": dict(self.parameters), "figures": dict(self.figures),
@@ -107,10 +110,11 @@ class BoneRecord:
                 "cpu_s": self.cpu_s, "wall_s": self.wall_s, "worker": self.worker}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], control_points: np.ndarray | None) -> BoneRecord:
+    def from_dict(cls, d: Mapping[str, Any], control_points: np.ndarray | None,
+                  surface: tuple[np.ndarray, np.ndarray] | None = None) -> BoneRecord:
         return cls(bone_id=d["id"], source=d["path"], status=d["status"], error=d["error"], detail=d["detail"],
                    side=d["side"], parameters=d["parameters"], figures=d["figures"], control_points=control_points,
-                   cpu_s=d["cpu_s"], wall_s=d["wall_s"], worker=d["worker"])
+                   surface=surface, cpu_s=d["cpu_s"], wall_s=d["wall_s"], worker=d["worker"])
 
 
 def frame_parameters(frame: AnatomicalFrame) -> dict[str, float]:
@@ -129,8 +133,8 @@ def frame_figures(frame: AnatomicalFrame) -> dict[str, float]:
 
 
 def _bone_results(source: BoneSource, settings: Settings
-                  ) -> tuple[str, dict[str, float], dict[str, float], np.ndarray | None]:
-    """One bone's side, parameters, fit figures and template control points (None: no template fitted)."""
+                  ) -> tuple[str, dict[str, float], dict[str, float], np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """One bone's side, parameters, fit figures, template control points and the surface they were fitted to."""
     bone = load_input(source.path, settings, units=source.units)
     settings = bone_settings(bone, settings)
     frame = bone_frame(bone, settings)
@@ -140,9 +144,9 @@ def _bone_results(source: BoneSource, settings: Settings
         raise InputError(f"the manifest says a {source.side} tibia; the anatomy (medial malleolus, tuberosity) "
                          f"says {frame.side}", source.path)
     measured = measure_tibia(bone, frame, settings.morphometry).values()
-    fit, _, _ = template_fit_bone(bone, settings, frame=frame)
+    fit, surface_points, surface_weights = template_fit_bone(bone, settings, frame=frame)
     return frame.side, {**measured, **frame_parameters(frame)}, {**frame_figures(frame), **fit_figures(fit)}, \
-        fit.control_points
+        fit.control_points, (surface_points, surface_weights)
 
 
 def cohort_job(source: BoneSource, settings: Settings) -> BoneRecord:
@@ -156,16 +160,16 @@ def cohort_job(source: BoneSource, settings: Settings) -> BoneRecord:
     error = detail = side = ""
     parameters: dict[str, float] = {}
     figures: dict[str, float] = {}
-    points = None
+    points = surface = None
     try:
         with threadpool_limits(limits=1, user_api="blas"):
-            side, parameters, figures, points = _bone_results(source, settings)
+            side, parameters, figures, points, surface = _bone_results(source, settings)
     except InputError as exc:
         status, error = "bad input", str(exc)
     except Exception as exc:  # recorded, not raised: the rest of the cohort goes on
         status, error, detail = "failed", f"{type(exc).__name__}: {exc}", traceback.format_exc()
     return BoneRecord(bone_id=source.bone_id, source=str(source.path), status=status, error=error, detail=detail,
-                      side=side, parameters=parameters, figures=figures, control_points=points,
+                      side=side, parameters=parameters, figures=figures, control_points=points, surface=surface,
                       cpu_s=round(time.process_time() - cpu, 3), wall_s=round(time.perf_counter() - wall, 3),
                       worker=f"{socket.gethostname()}:{os.getpid()}")
 
@@ -266,7 +270,8 @@ def _fingerprint(path: Path) -> list[int]:
 
 
 class Journal:
-    """One record per finished bone in ``OUT/.bones``, committed atomically (the points first, then the record)."""
+    """One record per finished bone in ``OUT/.bones``, committed atomically (the points and the surface first,
+    then the record)."""
 
     def __init__(self, out_dir: Path, settings_hash: str):
         self.folder = out_dir / _JOURNAL
@@ -282,19 +287,23 @@ class Journal:
         if (entry["settings_hash"] != self.settings_hash or entry["source"] != _fingerprint(source.path)
                 or record["path"] != str(source.path) or record["status"] not in ("done", "bad input")):
             return None
-        points = None
+        points = surface = None
         if record["control_points"] is not None:
             try:
                 points = np.load(self.folder / f"{source.bone_id}.npy")
-            except (OSError, ValueError):
+                surface = load_surface(self.folder / f"{source.bone_id}.npz")
+            except (OSError, ValueError, KeyError):
                 return None
-        return BoneRecord.from_dict(record, points)
+        return BoneRecord.from_dict(record, points, surface)
 
     def commit(self, source: BoneSource, record: BoneRecord) -> None:
         self.folder.mkdir(parents=True, exist_ok=True)
         if record.control_points is not None:
             with staged_file(self.folder / f"{source.bone_id}.npy") as tmp:
                 np.save(tmp, record.control_points)
+        if record.surface is not None:
+            with staged_file(self.folder / f"{source.bone_id}.npz") as tmp:
+                save_surface(tmp, record.surface)
         entry = {"settings_hash": self.settings_hash, "source": _fingerprint(source.path),
                  "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "record": record.as_dict()}
         with staged_file(self.folder / f"{source.bone_id}.json") as tmp:
@@ -414,8 +423,9 @@ def _columns(records: Sequence[BoneRecord], attr: str) -> list[str]:
 
 def write_cohort(out_dir: Path, sources: Sequence[BoneSource], records: Sequence[BoneRecord], settings: Settings,
                  *, source: Path) -> None:
-    """cohort.csv (one row per bone), cohort.json (the same, the failures, the settings and versions) and
-    points/<id>.npy, all or nothing."""
+    """cohort.csv (one row per bone), cohort.json (the same, the failures, the settings and versions),
+    points/<id>.npy and surface/<id>.npz (what ``shape-model build`` measures the generalisation against), all or
+    nothing."""
     parameters, figures = _columns(records, "parameters"), _columns(records, "figures")
     extra = list(dict.fromkeys(k for s in sources for k in s.extra))
     with staged_output(out_dir) as stage:
@@ -431,12 +441,18 @@ def write_cohort(out_dir: Path, sources: Sequence[BoneSource], records: Sequence
             (stage / "points").mkdir()
             for bone_id, array in points.items():
                 np.save(stage / "points" / f"{bone_id}.npy", array)
+        surfaces = {r.bone_id: r.surface for r in records if r.surface is not None}
+        if surfaces:
+            (stage / "surface").mkdir()
+            for bone_id, surface in surfaces.items():
+                save_surface(stage / "surface" / f"{bone_id}.npz", surface)
         counts = {status: sum(r.status == status for r in records) for status in EXIT_CLASS}
         doc = {"input": str(source), "bones": len(records), **{k.replace(" ", "_"): v for k, v in counts.items()},
                "cpu_s": round(sum(r.cpu_s for r in records), 3), "settings_hash": settings_hash(settings),
                "versions": _versions(), "settings": settings.to_dict(),
                "records": [{**r.as_dict(), **({"manifest": dict(s.extra)} if s.extra else {}),
-                            "points": f"points/{r.bone_id}.npy" if r.control_points is not None else None}
+                            "points": f"points/{r.bone_id}.npy" if r.control_points is not None else None,
+                            "surface": f"surface/{r.bone_id}.npz" if r.surface is not None else None}
                            for s, r in zip(sources, records)],
                "failures": [{"id": r.bone_id, "path": r.source, "status": r.status, "error": r.error}
                             for r in records if r.status != "done"]}

@@ -63,6 +63,17 @@ def template_fit_bone(bone: BoneMesh, settings: Settings, *, frame: AnatomicalFr
     return fit, points, weights
 
 
+def save_surface(path: Path, surface: tuple[np.ndarray, np.ndarray]) -> None:
+    """A bone's surface file ``surface/<bone>.npz``: ``points`` (m, 3) mm and area ``weights`` (m,) mm^2."""
+    np.savez(path, points=surface[0], weights=surface[1])
+
+
+def load_surface(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(points, weights) of a surface file (``save_surface``)."""
+    with np.load(path) as data:
+        return data["points"], data["weights"]
+
+
 def fit_figures(fit: TemplateFit) -> dict[str, float]:
     """A template fit's figures as cohort table columns ("fit_" names: no shape parameters)."""
     return {"fit_share_within": fit.share_within, "fit_max_mm": fit.max_mm, "fit_rms_mm": fit.rms_mm,
@@ -81,7 +92,7 @@ def write_cohort(bones: Sequence[tuple[str, BoneMesh, Mapping[str, float]]], out
             fit, points, weights = template_fit_bone(bone, settings)
             fits[name] = fit
             np.save(tmp / "points" / f"{name}.npy", fit.control_points)
-            np.savez(tmp / "surface" / f"{name}.npz", points=points, weights=weights)
+            save_surface(tmp / "surface" / f"{name}.npz", (points, weights))
             rows.append({"bone": name, **{k: float(v) for k, v in params.items()}, **fit_figures(fit)})
             log.info("%s: template fit %s", name, fit.summary())
         with open(tmp / "cohort.csv", "w", newline="") as fh:
@@ -139,8 +150,7 @@ def _build_model_folder(out_dir: str | Path, cohort: str | Path, settings: Setti
     if all(p.is_file() for p in surfaces):
         held = []
         for p, cp in zip(surfaces, shapes):
-            with np.load(p) as data:
-                held.append(held_surface(cp, tpl, data["points"], data["weights"]))
+            held.append(held_surface(cp, tpl, *load_surface(p)))
         modes = [k for k in GENERALISATION_MODES if k <= len(bones) - 2] or [1]
         gen = generalisation_mm(shapes, held, modes, sm, tpl)
         figures_out["generalisation_rms_mm"] = {str(k): _stats(gen[:, c]) for c, k in enumerate(modes)}
