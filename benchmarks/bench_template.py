@@ -73,7 +73,8 @@ def _real_cohort(real: dict, settings: Settings) -> None:
     shapes = np.stack([real[n][0].control_points for n in names])
     lengths = np.array([real[n][3] for n in names])
     tpl, sm = settings.template, settings.shape_model
-    held = [held_surface(real[n][0].control_points, tpl, real[n][1], real[n][2]) for n in names]
+    held = [held_surface(real[n][0].control_points, tpl, real[n][1], real[n][2], samples=sm.surface_samples,
+                         seed=sm.seed) for n in names]
     modes = list(range(1, len(names) - 1))
     gen = generalisation_mm(shapes, held, modes, sm, tpl)
     base = baselines_mm(shapes, lengths, held, tpl)

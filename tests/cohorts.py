@@ -43,3 +43,8 @@ def varied_parameters(count: int = PHANTOMS) -> list[TibiaParameters]:
         medial_slope_deg=lerp(10, 0.0, 12.0), lateral_slope_deg=lerp(11, 0.0, 10.0), torsion_deg=lerp(12, 0.0, 40.0),
     )
     return [TibiaParameters(**{k: float(round(v[i], 2)) for k, v in columns.items()}) for i in range(count)]
+
+
+def design(params: TibiaParameters) -> dict[str, float]:
+    """The design parameters ``varied_parameters`` varies (name -> mm or degrees)."""
+    return {k: v for k, v in asdict(params).items() if k != "voxel_mm"}

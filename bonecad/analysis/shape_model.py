@@ -230,8 +230,13 @@ class Held:
 
 
 def held_surface(control_points: np.ndarray, template: TemplateSettings, points: np.ndarray,
-                 weights: np.ndarray) -> Held:
-    """A bone's :class:`Held` surface from its template control points and its mesh points."""
+                 weights: np.ndarray, *, samples: int, seed: int) -> Held:
+    """A bone's :class:`Held` surface from its template control points and its mesh points (mm) with their
+    area weights (mm^2): at most ``samples`` of them, drawn by weight (seeded), each then weighing the same,
+    so the RMS over them estimates the area-weighted RMS at a fraction of the projections."""
+    if len(points) > samples:
+        pick = np.sort(np.random.default_rng(seed).choice(len(points), size=samples, p=weights / weights.sum()))
+        points, weights = points[pick], np.ones(samples)
     s, t, _ = initial_parameters(template_tspline(control_points, template), points)
     return Held(points, weights, s, t)
 

@@ -95,7 +95,7 @@ def measure_tibia(bone: BoneMesh, frame: AnatomicalFrame, settings: MorphometryS
 
     # The ankle's own transverse axis: from the medial malleolus's centre to the plafond centre (the
     # distal line of the torsion); the plafond and bimalleolar widths run along it, the depth across it.
-    malleolus = polygon_centroid(_outline(v, faces, -settings.malleolus_depth_mm, "the medial malleolus"))
+    malleolus = _malleolus_centre(v, faces, settings)
     ankle = np.array([-malleolus[0], -malleolus[1], 0.0]) / np.linalg.norm(malleolus)
     across = np.cross([0.0, 0.0, 1.0], ankle)  # anterior, turned with the ankle
     m["plafond_width_mm"] = _articular_extent(v, faces, ankle, settings)
@@ -110,6 +110,22 @@ def measure_tibia(bone: BoneMesh, frame: AnatomicalFrame, settings: MorphometryS
 
     m["torsion_deg"] = torsion_deg(plateau, 0.5 * (condyles["medial"] + condyles["lateral"]), malleolus)
     return TibiaMeasurements(frame.side, tuple(float(m[name]) for name in PARAMETER_NAMES))
+
+
+def _malleolus_centre(v: np.ndarray, faces: np.ndarray, settings: MorphometrySettings) -> np.ndarray:
+    """(2,) x, y (bone coordinates, mm) of the medial malleolus's centre: its section's centroid
+    ``malleolus_depth_mm`` below the plafond centre."""
+    return polygon_centroid(_outline(v, faces, -settings.malleolus_depth_mm, "the medial malleolus"))
+
+
+def ankle_turn_deg(bone: BoneMesh, frame: AnatomicalFrame, settings: MorphometrySettings) -> float:
+    """Direction (degrees from lateral towards anterior, bone coordinates) of the ankle's own lateral axis,
+    from the medial malleolus's centre through the plafond centre: where the distal end's lateral lies once
+    the tibia's torsion has turned it (the template's angles follow it, ``tspline_model.template``)."""
+    work = bone.work
+    faces = work.faces[:, ::-1] if frame.mirrored else work.faces
+    malleolus = _malleolus_centre(frame.to_bone(work.vertices), faces, settings)
+    return float(np.degrees(np.arctan2(-malleolus[1], -malleolus[0])))
 
 
 def torsion_deg(plateau: np.ndarray, notch_x: float, malleolus: np.ndarray) -> float:

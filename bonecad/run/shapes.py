@@ -29,10 +29,11 @@ from bonecad.analysis.shape_model import (ShapeModel, baselines_mm, build_shape_
                                           predict_parameters,
                                           specificity_mm)
 from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
-from bonecad.anatomy.morphometry import measure_tibia
+from bonecad.anatomy.morphometry import ankle_turn_deg, measure_tibia
 from bonecad.contours.curves import contour_curves
 from bonecad.errors import InputError
 from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.run.executor import executor_for
 from bonecad.settings import Settings
 from bonecad.staging import staged_output
 from bonecad.tspline_model.template import TemplateFit, fit_template, surface_targets, template_shape, template_tspline
@@ -58,7 +59,8 @@ def template_fit_bone(bone: BoneMesh, settings: Settings, *, frame: AnatomicalFr
             frame = anatomical_frame(bone, settings=settings.anatomy, plausible=settings.units)
         contours = contour_curves(bone, frame, settings=settings.curves)
         radius = settings.curves.apex_hole_radius_mm
-        fit = fit_template(bone, frame, contours, settings.template, apex_hole_radius_mm=radius)
+        fit = fit_template(bone, frame, contours, settings.template, apex_hole_radius_mm=radius,
+                           ankle_turn_deg=ankle_turn_deg(bone, frame, settings.morphometry))
         points, weights = surface_targets(bone, frame, settings.template, apex_hole_radius_mm=radius)
     return fit, points, weights
 
@@ -80,16 +82,24 @@ def fit_figures(fit: TemplateFit) -> dict[str, float]:
             "fit_cpu_s": fit.cpu_s}
 
 
+def _fit_bones(bones: Sequence[BoneMesh], settings: Settings) -> list[tuple[TemplateFit, np.ndarray, np.ndarray]]:
+    return [template_fit_bone(bone, settings) for bone in bones]
+
+
 def write_cohort(bones: Sequence[tuple[str, BoneMesh, Mapping[str, float]]], out_dir: str | Path,
-                 settings: Settings) -> dict[str, TemplateFit]:
-    """A cohort folder (module docstring) from (name, mesh, parameters) triples, one bone after another."""
+                 settings: Settings, *, background: bool = False) -> dict[str, TemplateFit]:
+    """A cohort folder (module docstring) from (name, mesh, parameters) triples; ``background``: the second
+    half of the bones fitted in a forked child on the second core (``executor_for``), the same fits."""
     fits = {}
+    half = len(bones) // 2
+    with executor_for(background) as ex:
+        job = ex.submit(_fit_bones, [bone for _, bone, _ in bones[half:]], settings)
+        fitted = _fit_bones([bone for _, bone, _ in bones[:half]], settings) + job.result()
     with staged_output(out_dir) as tmp:
         (tmp / "points").mkdir()
         (tmp / "surface").mkdir()
         rows = []
-        for name, bone, params in bones:
-            fit, points, weights = template_fit_bone(bone, settings)
+        for (name, _, params), (fit, points, weights) in zip(bones, fitted):
             fits[name] = fit
             np.save(tmp / "points" / f"{name}.npy", fit.control_points)
             save_surface(tmp / "surface" / f"{name}.npz", (points, weights))
@@ -150,7 +160,7 @@ def _build_model_folder(out_dir: str | Path, cohort: str | Path, settings: Setti
     if all(p.is_file() for p in surfaces):
         held = []
         for p, cp in zip(surfaces, shapes):
-            held.append(held_surface(cp, tpl, *load_surface(p)))
+            held.append(held_surface(cp, tpl, *load_surface(p), samples=sm.surface_samples, seed=sm.seed))
         modes = [k for k in GENERALISATION_MODES if k <= len(bones) - 2] or [1]
         gen = generalisation_mm(shapes, held, modes, sm, tpl)
         figures_out["generalisation_rms_mm"] = {str(k): _stats(gen[:, c]) for c, k in enumerate(modes)}

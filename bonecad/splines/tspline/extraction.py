@@ -17,6 +17,7 @@ homogeneous Bezier points = operator @ [w P, w].
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -55,9 +56,10 @@ class BezierExtraction:
     def n_elements(self) -> int:
         return len(self.index_bounds)
 
-    @property
+    @cached_property
     def operator(self) -> sp.csr_matrix:
-        """(16 n_e, n_A) sparse extraction operator (all elements stacked)."""
+        """(16 n_e, n_A) sparse extraction operator (all elements stacked); built once per extraction (a fit
+        re-solves, and a shape model evaluates, many control-point sets on one T-mesh)."""
         n_e, n_a = self.n_elements, len(self.mesh.anchors)
         elem = np.repeat(np.arange(n_e), np.diff(self.pair_ptr))
         rows = (16 * elem[:, None] + np.arange(16)).ravel()
