@@ -1,8 +1,8 @@
 """The report's interactive 3-D view: offline, self-contained HTML (three.js inlined, no network).
 
 The meshes (the input mesh and each model's tessellation, decimated to
-``[analysis] view_max_triangles``) are embedded as base64 float32/uint32 arrays
-with their signed deviation per vertex (mm, positive = mesh outside the CAD
+``[analysis] view_max_triangles`` by the working copy's quadric edge collapse)
+are embedded as base64 float32/uint32 arrays with their signed deviation per vertex (mm, positive = mesh outside the CAD
 model), and each model's seams (the borders of its faces, from the full
 tessellation) as line segments. The page colours them on a diverging scale
 (blue inside, red outside, symmetric about 0, the limit editable) or shows
@@ -29,6 +29,7 @@ import numpy as np
 
 from bonecad.mesh.closest import TriangleLocator, vertex_normals
 from bonecad.mesh.topology import edge_counts
+from bonecad.mesh.working import simplified
 
 
 @dataclass(frozen=True)
@@ -44,18 +45,29 @@ class ViewMesh:
 
 
 def decimate(vertices: np.ndarray, triangles: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:
-    """Coincident vertices merged (a tessellation's face borders), then quadric edge-collapse
-    decimation to at most about ``max_triangles`` triangles (pymeshlab); deterministic."""
-    import pymeshlab
+    """Vertices within 1e-6 of the bounding box's diagonal merged (a tessellation's face borders), then
+    quadric edge-collapse decimation to at most about ``max_triangles`` triangles (the working copy's
+    simplifier, ``mesh.working.simplified``); deterministic."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
 
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles, dtype=np.int32)))
-    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(0.0001))
-    if ms.current_mesh().face_number() > max_triangles:
-        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(max_triangles), preservenormal=True,
-                                                    planarquadric=True, qualitythr=0.5)
-    out = ms.current_mesh()
-    return out.vertex_matrix(), out.face_matrix()
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    n = len(vertices)
+    radius = 1e-6 * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    pairs = cKDTree(vertices).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, component = connected_components(graph, directed=False)
+    first = np.full(component.max(initial=-1) + 1, n)
+    np.minimum.at(first, component, np.arange(n))  # each cluster kept as its lowest vertex
+    keep = first[component] == np.arange(n)
+    faces = (np.cumsum(keep) - 1)[first[component]][triangles]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    points = vertices[keep]
+    if len(faces) > max_triangles:
+        return simplified(points, faces, int(max_triangles))
+    return points, faces
 
 
 def deviation_at(points: np.ndarray, bone_vertices: np.ndarray, bone_faces: np.ndarray) -> np.ndarray:
