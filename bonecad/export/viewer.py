@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bonecad.mesh.closest import TriangleLocator, vertex_normals
+from bonecad.mesh.closest import TriangleLocator
 from bonecad.mesh.topology import edge_counts
 from bonecad.mesh.working import simplified
 
@@ -70,12 +70,12 @@ def decimate(vertices: np.ndarray, triangles: np.ndarray, max_triangles: int) ->
     return points, faces
 
 
-def deviation_at(points: np.ndarray, bone_vertices: np.ndarray, bone_faces: np.ndarray) -> np.ndarray:
-    """(N,) signed deviation (mm) at points of a CAD model's surface: their distance to the bone mesh,
-    positive where the mesh lies outside the model (the sign convention of ``analysis.deviation``)."""
-    near = TriangleLocator(bone_vertices, bone_faces).query(points)
-    normal = np.einsum("nk,nkj->nj", near.barycentric,
-                       vertex_normals(bone_vertices, bone_faces)[bone_faces[near.triangle]])
+def deviation_at(points: np.ndarray, bone: TriangleLocator) -> np.ndarray:
+    """(N,) signed deviation (mm) at points of a CAD model's surface: their distance to the bone mesh
+    (``bone``: its closest-point tree, with its vertex normals), positive where the mesh lies outside the
+    model (the sign convention of ``analysis.deviation``)."""
+    near = bone.query(points)
+    normal = np.einsum("nk,nkj->nj", near.barycentric, bone.vertex_normals[bone.triangles[near.triangle]])
     outside = np.einsum("ij,ij->i", points - near.points, normal) > 0
     return np.where(outside, -near.distance, near.distance)
 
@@ -93,12 +93,11 @@ def face_seams(vertices: np.ndarray, triangles: np.ndarray, triangle_face: np.nd
 
 
 def model_view(name: str, vertices: np.ndarray, triangles: np.ndarray, triangle_face: np.ndarray,
-               bone_vertices: np.ndarray, bone_faces: np.ndarray, max_triangles: int) -> ViewMesh:
+               bone: TriangleLocator, max_triangles: int) -> ViewMesh:
     """A model's tessellation (``triangle_face``: each triangle's face), decimated, coloured by its
-    deviation from the bone mesh, with its seams."""
+    deviation from the bone mesh (``bone``: its closest-point tree), with its seams."""
     v, f = decimate(vertices, triangles, max_triangles)
-    return ViewMesh(name, v, f, {name: deviation_at(v, bone_vertices, bone_faces)},
-                    face_seams(vertices, triangles, triangle_face))
+    return ViewMesh(name, v, f, {name: deviation_at(v, bone)}, face_seams(vertices, triangles, triangle_face))
 
 
 def input_view(bone_vertices: np.ndarray, bone_faces: np.ndarray, vertex_deviation_mm: dict[str, np.ndarray],
