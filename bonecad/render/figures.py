@@ -131,11 +131,13 @@ def splat(
         nrm.reshape(height, width, 3),
         (left, right, bottom, top),
     )
-    return _fill_pinholes(_fill_pinholes(raster))
+    _fill_pinholes(raster)
+    _fill_pinholes(raster)
+    return raster
 
 
-def _fill_pinholes(raster: Raster) -> Raster:
-    """Fill uncovered pixels with at least 5 of 8 covered neighbours from the nearest neighbour.
+def _fill_pinholes(raster: Raster) -> None:
+    """Fill uncovered pixels with at least 5 of 8 covered neighbours from the nearest neighbour, in place.
 
     Random splatting leaves isolated empty pixels inside the surface; true
     silhouettes have fewer covered neighbours and stay as they are. Counts in
@@ -157,16 +159,14 @@ def _fill_pinholes(raster: Raster) -> Raster:
         nearer += depth[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] > behind
     hole = (~mask & (count >= 5)) | (mask & (nearer >= 6))
     if not hole.any():
-        return raster
+        return
     r, c = np.nonzero(hole)
     around = np.stack([depth[1 + dy + r, 1 + dx + c] for dy, dx in shifts], axis=1)
     step = np.array(shifts)[np.argmax(around, axis=1)]  # the nearest neighbour (the first of equals)
     sr, sc = r + step[:, 0], c + step[:, 1]
-    out = [a.copy() for a in (raster.mask, raster.depth, raster.values, raster.normal)]
-    out[0][r, c] = True
-    for arr in out[1:]:
-        arr[r, c] = arr[sr, sc]
-    return Raster(out[0], out[1], out[2], out[3], raster.extent_mm)
+    for arr in (raster.depth, raster.values, raster.normal):
+        arr[r, c] = arr[sr, sc]  # the sources read before any is written
+    raster.mask[r, c] = True
 
 
 def _view_bounds(vertices: np.ndarray, axes: np.ndarray, margin: float = 0.03):
