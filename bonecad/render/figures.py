@@ -25,6 +25,7 @@ wave), so they fade to grey instead of aliasing into noise.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -90,16 +91,20 @@ def to_screen(points: np.ndarray, axes: np.ndarray) -> np.ndarray:
     return np.einsum("...j,kj->...k", points, axes)
 
 
+#: the attributes of the samples at some indices (k,): their normals (k, 3) and values (k, m)
+Attributes = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
 def splat(
     points: np.ndarray,
-    normals: np.ndarray,
-    values: np.ndarray,
+    attributes: Attributes,
     axes: np.ndarray,
     *,
     pixel_mm: float,
     bounds_mm: tuple[float, float, float, float],
 ) -> Raster:
-    """Z-buffer ``points`` (N, 3) with ``normals`` (N, 3) and ``values`` (N, k) into pixels."""
+    """Z-buffer ``points`` (N, 3) into pixels, with the normals and values of the samples that show
+    (``attributes``: computed for those only, about a fifth of the samples in each view)."""
     s = to_screen(points, axes)
     left, right, bottom, top = bounds_mm
     width = int(np.ceil((right - left) / pixel_mm))
@@ -120,10 +125,11 @@ def splat(
     mask[pix[first]] = True
     depth = np.full(height * width, -np.inf)
     depth[pix[first]] = s[first, 2]
+    normals, values = attributes(first)
     vals = np.zeros((height * width, values.shape[1]))
-    vals[pix[first]] = values[first]
+    vals[pix[first]] = values
     nrm = np.zeros((height * width, 3))
-    nrm[pix[first]] = to_screen(normals[first], axes)
+    nrm[pix[first]] = to_screen(normals, axes)
     raster = Raster(
         mask.reshape(height, width),
         depth.reshape(height, width),
@@ -204,11 +210,14 @@ def render_mesh_values(
     bounds = [_view_bounds(vertices, a) for a in frames]
     pixel = min((b[3] - b[2]) / height_px for b in bounds)
     samples = _dense_samples(vertices, triangles, pixel, 2.0, seed)
-    tri = triangles[samples.triangle]
     vn = vertex_normals(vertices, triangles)
-    normals = np.einsum("nk,nkj->nj", samples.barycentric, vn[tri])
-    values = np.einsum("nk,nk->n", samples.barycentric, vertex_values[tri])[:, None]
-    return [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
+
+    def attributes(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        tri, bary = triangles[samples.triangle[index]], samples.barycentric[index]
+        return (np.einsum("nk,nkj->nj", bary, vn[tri]),
+                np.einsum("nk,nk->n", bary, vertex_values[tri])[:, None])
+
+    return [splat(samples.points, attributes, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
 
 
 def render_tessellation_normals(
@@ -232,13 +241,16 @@ def render_tessellation_normals(
     bounds = [_view_bounds(tess.vertices, a) for a in frames]
     pixel = min((b[3] - b[2]) / height_px for b in bounds)
     samples = _dense_samples(tess.vertices, tess.triangles, pixel, 2.0, seed)
-    tri = tess.triangles[samples.triangle]
-    normals = np.einsum("nk,nkj->nj", samples.barycentric, tess.normals[tri])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)  # kept where no surface
-    uv = np.einsum("nk,nkj->nj", samples.barycentric, tess.uv[tri])
-    face = tess.triangle_face[samples.triangle]
-    values = np.column_stack([face.astype(float), uv, samples.triangle.astype(float)])
-    rasters = [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
+
+    def attributes(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        triangle, bary = samples.triangle[index], samples.barycentric[index]
+        tri = tess.triangles[triangle]
+        normals = np.einsum("nk,nkj->nj", bary, tess.normals[tri])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)  # kept where no surface
+        uv = np.einsum("nk,nkj->nj", bary, tess.uv[tri])
+        return normals, np.column_stack([tess.triangle_face[triangle].astype(float), uv, triangle.astype(float)])
+
+    rasters = [splat(samples.points, attributes, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
     for raster, axes in zip(rasters, frames):
         _exact_normals(raster, axes, tess)
     return rasters
