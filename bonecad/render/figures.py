@@ -183,9 +183,9 @@ def _view_bounds(vertices: np.ndarray, axes: np.ndarray, margin: float = 0.03):
 
 
 def _dense_samples(vertices, triangles, pixel_mm: float, per_pixel: float, seed: int, cap: int = 2_000_000):
-    area = triangle_areas(vertices, triangles).sum()
-    count = int(min(cap, max(10_000, per_pixel * area / pixel_mm**2)))
-    return sample_surface(vertices, triangles, count, seed=seed)
+    areas = triangle_areas(vertices, triangles)
+    count = int(min(cap, max(10_000, per_pixel * areas.sum() / pixel_mm**2)))
+    return sample_surface(vertices, triangles, count, seed=seed, areas=areas)
 
 
 def render_mesh_values(
