@@ -17,7 +17,7 @@ from scipy import ndimage
 
 from bonecad.errors import InputError
 from bonecad.imaging.volume import CTVolume
-from bonecad.mesh.bodies import neck_index
+from bonecad.mesh.bodies import BodyShape, body_roles, body_shape, neck_index
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 from bonecad.settings import MeshSettings
 
@@ -58,6 +58,7 @@ class _Body:
     axis: np.ndarray  # (3,) unit principal direction
     length_mm: float
     slices: tuple  # bounding box in the cropped array
+    shape: BodyShape  # what the intake's anatomy rules read (``bonecad.mesh.bodies``)
 
 
 def surface_level(volume: CTVolume) -> float:
@@ -176,9 +177,9 @@ def segment_bone(
             volume_mm3=b.volume_mm3,
             length_mm=b.length_mm,
             centroid=b.centroid,
-            role=roles[b.label],
+            role=role,
         )
-        for b in bodies
+        for b, role in _named_bodies(bodies, tibia, roles, settings)
     )
     return BoneMesh(
         vertices=np.asarray(mesh.vertices, dtype=np.float64),
@@ -220,17 +221,17 @@ def _bodies(labels: np.ndarray, count: int, offset: np.ndarray, volume: CTVolume
         kji = np.argwhere(part) * step + np.array([s.start for s in box]) + offset
         xyz = volume.index_to_world(kji[:, ::-1])
         centroid = xyz.mean(axis=0)
-        _, _, vt = np.linalg.svd(xyz - centroid, full_matrices=False)
-        along = (xyz - centroid) @ vt[0]
+        shape = body_shape(xyz, float(sizes[label] * voxel_mm3), centroid)
         bodies.append(
             _Body(
                 label=int(label),
                 voxels=int(sizes[label]),
-                volume_mm3=float(sizes[label] * voxel_mm3),
+                volume_mm3=shape.volume,
                 centroid=centroid,
-                axis=vt[0],
-                length_mm=float(along.max() - along.min()),
+                axis=shape.axis,
+                length_mm=shape.length,
                 slices=box,
+                shape=shape,
             )
         )
     return bodies
@@ -306,6 +307,17 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
         if b is not tibia:
             roles[b.label] = "other bone"
     return tibia, roles
+
+
+def _named_bodies(bodies: list[_Body], tibia: _Body, roles: dict[int, str], settings: MeshSettings
+                  ) -> list[tuple[_Body, str]]:
+    """Every body with its role by anatomy (``bonecad.mesh.bodies.body_roles``, as a mesh's intake names
+    them: femur, patella, talus, ...), the tibia first (the kept body, as in a mesh's intake). A fibula
+    ``_pick_tibia`` found beside the tibia stays a fibula. The tibia's plateau end is the superior one (LPS z)."""
+    ordered = [tibia, *(b for b in bodies if b is not tibia)]
+    up = tibia.axis if tibia.axis[2] > 0 else -tibia.axis
+    named = body_roles([b.shape for b in ordered], 0, up, settings)
+    return [(b, "fibula" if roles[b.label] == "fibula" else role) for b, role in zip(ordered, named)]
 
 
 def _check_whole(tibia: _Body, offset: np.ndarray, volume: CTVolume, path: object) -> None:
