@@ -114,7 +114,7 @@ def segment_bone(
     bodies = _bodies(labels, count, offset, volume)
     if _split_touching(labels, count, bodies, offset, volume):
         bodies = _bodies(labels, int(labels.max()), offset, volume)
-    tibia, roles = _pick_tibia(bodies, path)
+    tibia, fibulae = _pick_tibia(bodies, path)
     separated: tuple[str, ...] = ()
     for _ in range(2):  # a talus at the ankle, a femur at the knee
         found = _split_at_neck(labels, tibia, offset, volume, settings)
@@ -122,7 +122,7 @@ def segment_bone(
             break
         separated += found
         bodies = _bodies(labels, int(labels.max()), offset, volume)
-        tibia, roles = _pick_tibia(bodies, path)
+        tibia, fibulae = _pick_tibia(bodies, path)
     _check_whole(tibia, offset, volume, path)
 
     # The tibia's box in the volume, padded by 2 voxels (HU beyond the volume: far below the level).
@@ -183,7 +183,7 @@ def segment_bone(
             centroid=b.centroid,
             role=role,
         )
-        for b, role in _named_bodies(bodies, tibia, roles, settings)
+        for b, role in _named_bodies(bodies, tibia, fibulae, settings)
     )
     return BoneMesh(
         vertices=np.asarray(mesh.vertices, dtype=np.float64),
@@ -241,8 +241,8 @@ def _bodies(labels: np.ndarray, count: int, offset: np.ndarray, volume: CTVolume
     return bodies
 
 
-def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str]]:
-    """The tibia among the bodies, and a role for every body.
+def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, frozenset[int]]:
+    """The tibia among the bodies, and the labels of the fibulae found beside a long bone.
 
     Long bodies are those at least half as long as the longest. A long body
     lying beside a bulkier one (spans along the limb overlapping, centroids
@@ -253,7 +253,6 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
     """
     if not bodies:
         raise InputError("no bone found", path)
-    roles = {b.label: "fragment" for b in bodies}
     longest = max(b.length_mm for b in bodies)
     biggest = max(bodies, key=lambda b: b.volume_mm3)
     limb = biggest.axis
@@ -283,8 +282,6 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
         if hosts:
             fibulae[b.label] = min(hosts, key=lambda a: apart(a, b)).label
     main = [b for b in long if b.label not in fibulae]
-    for label in fibulae:
-        roles[label] = "fibula"
     candidates = main
     if len(candidates) > 1:
         with_fibula = [b for b in candidates if b.label in fibulae.values()]
@@ -305,15 +302,10 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
             "fibula or talus); crop the volume to one lower leg",
             path,
         )
-    tibia = candidates[0]
-    roles[tibia.label] = "tibia"
-    for b in main:
-        if b is not tibia:
-            roles[b.label] = "other bone"
-    return tibia, roles
+    return candidates[0], frozenset(fibulae)
 
 
-def _named_bodies(bodies: list[_Body], tibia: _Body, roles: dict[int, str], settings: MeshSettings
+def _named_bodies(bodies: list[_Body], tibia: _Body, fibulae: frozenset[int], settings: MeshSettings
                   ) -> list[tuple[_Body, str]]:
     """Every body with its role by anatomy (``bonecad.mesh.bodies.body_roles``, as a mesh's intake names
     them: femur, patella, talus, ...), the tibia first (the kept body, as in a mesh's intake). A fibula
@@ -321,7 +313,7 @@ def _named_bodies(bodies: list[_Body], tibia: _Body, roles: dict[int, str], sett
     ordered = [tibia, *(b for b in bodies if b is not tibia)]
     up = tibia.axis if tibia.axis[2] > 0 else -tibia.axis
     named = body_roles([b.shape for b in ordered], 0, up, settings)
-    return [(b, "fibula" if roles[b.label] == "fibula" else role) for b, role in zip(ordered, named)]
+    return [(b, "fibula" if b.label in fibulae else role) for b, role in zip(ordered, named)]
 
 
 def _check_whole(tibia: _Body, offset: np.ndarray, volume: CTVolume, path: object) -> None:
