@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bonecad.mesh.closest import TriangleLocator
-from bonecad.mesh.topology import edge_counts
+from bonecad.mesh.topology import edge_counts, merge_close_vertices
 from bonecad.mesh.working import simplified
 
 
@@ -48,23 +48,8 @@ def decimate(vertices: np.ndarray, triangles: np.ndarray, max_triangles: int) ->
     """Vertices within 1e-6 of the bounding box's diagonal merged (a tessellation's face borders), then
     quadric edge-collapse decimation to at most about ``max_triangles`` triangles (the working copy's
     simplifier, ``mesh.working.simplified``); deterministic."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    vertices = np.asarray(vertices, dtype=np.float64)
-    triangles = np.asarray(triangles, dtype=np.int64)
-    n = len(vertices)
-    radius = 1e-6 * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-    pairs = cKDTree(vertices).query_pairs(radius, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, component = connected_components(graph, directed=False)
-    first = np.full(component.max(initial=-1) + 1, n)
-    np.minimum.at(first, component, np.arange(n))  # each cluster kept as its lowest vertex
-    keep = first[component] == np.arange(n)
-    faces = (np.cumsum(keep) - 1)[first[component]][triangles]
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
-    points = vertices[keep]
+    radius = 1e-6 * float(np.linalg.norm(np.ptp(np.asarray(vertices, dtype=np.float64), axis=0)))
+    points, faces = merge_close_vertices(vertices, triangles, radius)
     if len(faces) > max_triangles:
         return simplified(points, faces, int(max_triangles))
     return points, faces

@@ -83,6 +83,26 @@ def merge_duplicate_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[n
     return vertices[keep], new_index[first_of][faces]
 
 
+def merge_close_vertices(vertices: np.ndarray, faces: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices within ``radius_mm`` of each other (chained) merged into the lowest of them, the order kept,
+    and the faces that collapse dropped (a tessellation's face borders, whose vertices are not bit-equal);
+    returns (vertices, faces re-indexed)."""
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    n = len(vertices)
+    pairs = cKDTree(vertices).query_pairs(radius_mm, output_type="ndarray")
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, component = connected_components(graph, directed=False)
+    first = np.full(component.max(initial=-1) + 1, n)
+    np.minimum.at(first, component, np.arange(n))  # each cluster kept as its lowest vertex
+    keep = first[component] == np.arange(n)
+    merged = (np.cumsum(keep) - 1)[first[component]][faces]
+    merged = merged[(merged[:, 0] != merged[:, 1]) & (merged[:, 1] != merged[:, 2]) & (merged[:, 2] != merged[:, 0])]
+    return vertices[keep], merged
+
+
 def duplicate_faces(faces: np.ndarray) -> np.ndarray:
     """(m,) bool: the faces on the same three vertices as an earlier face (in any order)."""
     narrow = np.int32 if faces.size == 0 or faces.max() < np.iinfo(np.int32).max else np.int64  # fewer words to hash
