@@ -6,9 +6,10 @@ clinical voxel grid, a synthetic CT of the whole leg (cortex, marrow, soft
 tissue, air, 0.4 mm blur, 30 HU noise, slices as thick as their spacing) is
 written as NIfTI and reconstructed by the command line as a user would
 (`bonecad reconstruct leg.nii.gz --out DIR`). Reported per leg and grid: the
-tibia's side, what the segmentation separated, wall time and peak memory of
-the command (resident memory of its whole process tree, sampled every 50 ms),
-and the T-spline's deviation from the true tibia's surface (re-read from
+tibia's side, what the segmentation separated, wall time, CPU time (user +
+system of the command and the children it waited for) and peak memory of the
+command (resident memory of its whole process tree, sampled every 50 ms), the
+T-spline's control points, and its deviation from the true tibia's surface (re-read from
 tspline.step; area-weighted samples of the true surface, exact distances).
 
 Bars (issue 18): 0.8 x 0.8 x 1.0 mm: >= 99 % within 0.25 mm, max <= 1 mm;
@@ -37,10 +38,18 @@ BARS = {"0.8x0.8x1.0": (0.99, 1.0), "0.7x0.7x2.0": (0.98, 1.5)}
 TIME_LIMIT_S, MEMORY_LIMIT_MB = 60.0, 6144.0
 
 
-def run_measured(cmd: list[str], timeout_s: float = 600.0) -> tuple[int, float, float, str]:
-    """Run ``cmd``; (exit code, wall s, peak resident MB of its process tree, stderr)."""
+def run_measured(cmd: list[str], timeout_s: float = 600.0) -> tuple[int, float, float, float, str]:
+    """Run ``cmd``; (exit code, wall s, CPU s (user + system of its process tree: the children it waited
+    for), peak resident MB of its process tree, stderr)."""
+    import resource
+
     import psutil
 
+    def children_cpu_s() -> float:
+        usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return usage.ru_utime + usage.ru_stime
+
+    cpu0 = children_cpu_s()
     start = time.perf_counter()
     with tempfile.TemporaryFile() as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
@@ -59,7 +68,7 @@ def run_measured(cmd: list[str], timeout_s: float = 600.0) -> tuple[int, float, 
             time.sleep(0.05)
         wall = time.perf_counter() - start
         err.seek(0)
-        return proc.returncode, wall, peak, err.read().decode(errors="replace")
+        return proc.returncode, wall, children_cpu_s() - cpu0, peak, err.read().decode(errors="replace")
 
 
 def tspline_deviation(step: Path, leg) -> tuple[float, float, float]:
@@ -89,16 +98,18 @@ def bench(subject: str, grid: str, work: Path) -> dict:
     build_s = time.perf_counter() - t0
     out = work / f"{subject}_{grid}"
     cmd = [sys.executable, "-m", "bonecad.run.cli", "reconstruct", str(nifti), "--out", str(out), "-q"]
-    code, wall, peak, stderr = run_measured(cmd)
+    code, wall, cpu, peak, stderr = run_measured(cmd)
     row = {"subject": subject, "grid": grid, "voxels": list(ct.shape), "ct_build_s": round(build_s, 1),
-           "exit": code, "wall_s": round(wall, 1), "peak_mb": round(peak)}
+           "exit": code, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "peak_mb": round(peak)}
     if code != 0:
         return {**row, "error": stderr.strip().splitlines()[-1] if stderr.strip() else ""}
     frame = json.loads((out / "frame.json").read_text())
+    fit = json.loads((out / "report.json").read_text())["models"]["tspline"]["info"]
     share, worst, rms = tspline_deviation(out / "tspline.step", leg)
     within, max_bar = BARS[grid]
     return {**row, "side": frame["side"], "side_right": frame["side"] == leg.side,
             "separated": frame["input"]["repairs"],
+            "control_points": fit["control_points"], "fit_stopped": fit["fit_stopped"],
             "within_0.25": round(share, 4), "max_mm": round(worst, 3), "rms_mm": round(rms, 3),
             "bars_met": bool(frame["side"] == leg.side and share >= within and worst <= max_bar
                              and wall <= TIME_LIMIT_S and peak <= MEMORY_LIMIT_MB)}
@@ -114,7 +125,7 @@ def main() -> None:
     if missing:
         sys.exit(f"benchmark needs the bone sets of {missing} in ../shared/data")
     print(f"{'leg':<6} {'grid':<12} {'voxels':>16} {'side':>6} {'within .25':>10} {'max mm':>7} {'RMS':>6} "
-          f"{'wall s':>7} {'peak MB':>8}  bars  separated")
+          f"{'wall s':>7} {'CPU s':>6} {'peak MB':>8} {'points':>6}  bars  separated")
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -126,7 +137,8 @@ def main() -> None:
                     print(f"{subject:<6} {grid:<12} {shape:>16}  exit {r['exit']} after {r['wall_s']} s: {r['error']}")
                     continue
                 print(f"{subject:<6} {grid:<12} {shape:>16} {r['side']:>6} {100 * r['within_0.25']:9.2f}% "
-                      f"{r['max_mm']:7.3f} {r['rms_mm']:6.3f} {r['wall_s']:7.1f} {r['peak_mb']:8.0f}  "
+                      f"{r['max_mm']:7.3f} {r['rms_mm']:6.3f} {r['wall_s']:7.1f} {r['cpu_s']:6.1f} {r['peak_mb']:8.0f} "
+                      f"{r['control_points']:6d}  "
                       f"{'met' if r['bars_met'] else 'MISSED':<5} {'; '.join(r['separated']) or '-'}")
                 print(json.dumps(r), file=sys.stderr)
 

@@ -152,6 +152,7 @@ class TSplineSettings:
     fit point spacing (mm), starting T-mesh, refinement and noise-aware stopping."""
 
     target_share_within_mm: tuple[float, float]
+    segmented_share_within_mm: tuple[float, float]
     max_deviation_mm: float
     rms_mm: float
     fairness_weight: float

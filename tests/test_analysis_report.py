@@ -230,14 +230,16 @@ def test_3d_view_is_offline_decimated_and_signed():
     import trimesh
 
     from bonecad.export.viewer import decimate, deviation_at, input_view, model_view, viewer_html
+    from bonecad.mesh.closest import TriangleLocator
 
     bone = trimesh.creation.icosphere(subdivisions=5, radius=10.0)
+    tree = TriangleLocator(bone.vertices, bone.faces)
     v, f = decimate(bone.vertices, bone.faces, 2000)
     assert 1500 <= len(f) <= 2000
     outer = trimesh.creation.icosphere(subdivisions=3, radius=11.0)
-    assert deviation_at(outer.vertices, bone.vertices, bone.faces) == pytest.approx(-1.0, abs=0.02)
+    assert deviation_at(outer.vertices, tree) == pytest.approx(-1.0, abs=0.02)
     halves = (outer.triangles_center[:, 2] > 0).astype(int)  # two "faces": the seam is the equator
-    model = model_view("tspline", outer.vertices, outer.faces, halves, bone.vertices, bone.faces, 500)
+    model = model_view("tspline", outer.vertices, outer.faces, halves, tree, 500)
     assert len(model.seams) > 10 and np.abs(model.seams[..., 2]).max() < 2.0  # within a triangle of z = 0
     mesh = input_view(bone.vertices, bone.faces, {"tspline": np.full(len(bone.vertices), 0.5)}, 3000)
     assert len(model.triangles) <= 500 and np.allclose(mesh.deviation_mm["tspline"], 0.5)

@@ -117,6 +117,23 @@ def test_a_ct_input_writes_the_segmented_tibia_beside_the_models(phantom, tmp_pa
     assert not (tmp_path / "from_mesh" / "bone.stl").exists()
 
 
+def test_a_tibia_segmented_from_a_ct_is_fitted_to_the_stricter_target(phantom):
+    """The segmentation's error adds to the fit's: a CT's tibia gets [tspline] segmented_share_within_mm
+    (unless the run's own target is stricter); a mesh input keeps the run's target."""
+    from dataclasses import replace
+
+    from bonecad.run.bones import bone_settings
+    from bonecad.settings import Settings
+
+    settings = Settings.load()
+    assert settings.tspline.segmented_share_within_mm == (0.99, 0.2)
+    assert bone_settings(phantom, settings).tspline.target_share_within_mm == (0.99, 0.25)
+    segmented = replace(phantom, segmented=True)
+    assert bone_settings(segmented, settings).tspline.target_share_within_mm == (0.99, 0.2)
+    strict = settings.replace("tspline", target_share_within_mm=[0.995, 0.15])
+    assert bone_settings(segmented, strict).tspline.target_share_within_mm == (0.995, 0.15)
+
+
 class _Terminal(io.StringIO):
     def isatty(self) -> bool:
         return True

@@ -32,6 +32,18 @@ def test_merge_matches_meshlab(phantom):
     assert np.array_equal(merged, ms.current_mesh().face_matrix())
 
 
+def test_equal_rows_exact_under_hash_collisions(monkeypatch):
+    """Rows grouped by their hash are regrouped exactly where hashes collide (here: every hash 0)."""
+    from bonecad.mesh import topology
+
+    rng = np.random.default_rng(1)
+    rows = rng.integers(0, 40, (500, 3)).astype(np.float32)[rng.integers(0, 500, 5000)]
+    _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+    assert np.array_equal(topology.first_of_equal_rows(rows), first[inverse.ravel()])
+    monkeypatch.setattr(topology, "_WORD_MIX", np.zeros(6, dtype=np.uint64))
+    assert np.array_equal(topology.first_of_equal_rows(rows), first[inverse.ravel()])
+
+
 def test_edges_fans_and_duplicates():
     sphere = trimesh.creation.icosphere(2)
     faces = np.asarray(sphere.faces)

@@ -1,8 +1,8 @@
 """The report's interactive 3-D view: offline, self-contained HTML (three.js inlined, no network).
 
 The meshes (the input mesh and each model's tessellation, decimated to
-``[analysis] view_max_triangles``) are embedded as base64 float32/uint32 arrays
-with their signed deviation per vertex (mm, positive = mesh outside the CAD
+``[analysis] view_max_triangles`` by the working copy's quadric edge collapse)
+are embedded as base64 float32/uint32 arrays with their signed deviation per vertex (mm, positive = mesh outside the CAD
 model), and each model's seams (the borders of its faces, from the full
 tessellation) as line segments. The page colours them on a diverging scale
 (blue inside, red outside, symmetric about 0, the limit editable) or shows
@@ -27,8 +27,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bonecad.mesh.closest import TriangleLocator, vertex_normals
-from bonecad.mesh.topology import edge_counts
+from bonecad.mesh.closest import TriangleLocator
+from bonecad.mesh.topology import edge_counts, merge_close_vertices
+from bonecad.mesh.working import simplified
 
 
 @dataclass(frozen=True)
@@ -44,26 +45,22 @@ class ViewMesh:
 
 
 def decimate(vertices: np.ndarray, triangles: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:
-    """Coincident vertices merged (a tessellation's face borders), then quadric edge-collapse
-    decimation to at most about ``max_triangles`` triangles (pymeshlab); deterministic."""
-    import pymeshlab
-
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles, dtype=np.int32)))
-    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(0.0001))
-    if ms.current_mesh().face_number() > max_triangles:
-        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(max_triangles), preservenormal=True,
-                                                    planarquadric=True, qualitythr=0.5)
-    out = ms.current_mesh()
-    return out.vertex_matrix(), out.face_matrix()
+    """Vertices within 1e-6 of the bounding box's diagonal merged (a tessellation's face borders), then
+    quadric edge-collapse decimation to at most about ``max_triangles`` triangles (the working copy's
+    simplifier, ``mesh.working.simplified``); deterministic."""
+    radius = 1e-6 * float(np.linalg.norm(np.ptp(np.asarray(vertices, dtype=np.float64), axis=0)))
+    points, faces = merge_close_vertices(vertices, triangles, radius)
+    if len(faces) > max_triangles:
+        return simplified(points, faces, int(max_triangles))
+    return points, faces
 
 
-def deviation_at(points: np.ndarray, bone_vertices: np.ndarray, bone_faces: np.ndarray) -> np.ndarray:
-    """(N,) signed deviation (mm) at points of a CAD model's surface: their distance to the bone mesh,
-    positive where the mesh lies outside the model (the sign convention of ``analysis.deviation``)."""
-    near = TriangleLocator(bone_vertices, bone_faces).query(points)
-    normal = np.einsum("nk,nkj->nj", near.barycentric,
-                       vertex_normals(bone_vertices, bone_faces)[bone_faces[near.triangle]])
+def deviation_at(points: np.ndarray, bone: TriangleLocator) -> np.ndarray:
+    """(N,) signed deviation (mm) at points of a CAD model's surface: their distance to the bone mesh
+    (``bone``: its closest-point tree, with its vertex normals), positive where the mesh lies outside the
+    model (the sign convention of ``analysis.deviation``)."""
+    near = bone.query(points)
+    normal = np.einsum("nk,nkj->nj", near.barycentric, bone.vertex_normals[bone.triangles[near.triangle]])
     outside = np.einsum("ij,ij->i", points - near.points, normal) > 0
     return np.where(outside, -near.distance, near.distance)
 
@@ -81,12 +78,11 @@ def face_seams(vertices: np.ndarray, triangles: np.ndarray, triangle_face: np.nd
 
 
 def model_view(name: str, vertices: np.ndarray, triangles: np.ndarray, triangle_face: np.ndarray,
-               bone_vertices: np.ndarray, bone_faces: np.ndarray, max_triangles: int) -> ViewMesh:
+               bone: TriangleLocator, max_triangles: int) -> ViewMesh:
     """A model's tessellation (``triangle_face``: each triangle's face), decimated, coloured by its
-    deviation from the bone mesh, with its seams."""
+    deviation from the bone mesh (``bone``: its closest-point tree), with its seams."""
     v, f = decimate(vertices, triangles, max_triangles)
-    return ViewMesh(name, v, f, {name: deviation_at(v, bone_vertices, bone_faces)},
-                    face_seams(vertices, triangles, triangle_face))
+    return ViewMesh(name, v, f, {name: deviation_at(v, bone)}, face_seams(vertices, triangles, triangle_face))
 
 
 def input_view(bone_vertices: np.ndarray, bone_faces: np.ndarray, vertex_deviation_mm: dict[str, np.ndarray],

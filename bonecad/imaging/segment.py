@@ -17,7 +17,7 @@ from scipy import ndimage
 
 from bonecad.errors import InputError
 from bonecad.imaging.volume import CTVolume
-from bonecad.mesh.bodies import neck_index
+from bonecad.mesh.bodies import BodyShape, body_roles, body_shape, neck_index
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 from bonecad.settings import MeshSettings
 
@@ -58,6 +58,7 @@ class _Body:
     axis: np.ndarray  # (3,) unit principal direction
     length_mm: float
     slices: tuple  # bounding box in the cropped array
+    shape: BodyShape  # what the intake's anatomy rules read (``bonecad.mesh.bodies``)
 
 
 def surface_level(volume: CTVolume) -> float:
@@ -113,7 +114,7 @@ def segment_bone(
     bodies = _bodies(labels, count, offset, volume)
     if _split_touching(labels, count, bodies, offset, volume):
         bodies = _bodies(labels, int(labels.max()), offset, volume)
-    tibia, roles = _pick_tibia(bodies, path)
+    tibia, fibulae = _pick_tibia(bodies, path)
     separated: tuple[str, ...] = ()
     for _ in range(2):  # a talus at the ankle, a femur at the knee
         found = _split_at_neck(labels, tibia, offset, volume, settings)
@@ -121,7 +122,7 @@ def segment_bone(
             break
         separated += found
         bodies = _bodies(labels, int(labels.max()), offset, volume)
-        tibia, roles = _pick_tibia(bodies, path)
+        tibia, fibulae = _pick_tibia(bodies, path)
     _check_whole(tibia, offset, volume, path)
 
     # The tibia's box in the volume, padded by 2 voxels (HU beyond the volume: far below the level).
@@ -138,9 +139,13 @@ def segment_bone(
 
     # Grow the tibia 2 voxels into voxels above half-way between tissue and the
     # level (closes a thin, partial-volumed cortex), close, fill the marrow;
-    # never into a neighbour's voxels (a talus dome separated from the plafond
-    # lies inside the tibia's rim in the slices through the joint).
-    weak = (field >= 0.5 * (level + tissue)) & ~other
+    # never within 2 voxels of a neighbour's (a talus dome separated from the
+    # plafond lies inside the tibia's rim in the slices through the joint; a
+    # joint space thinner than a voxel is bright with both bones' partial
+    # volume: growing into it put the tibia's surface 0.84 mm into a 0.8 mm
+    # gap at 1 mm voxels; TLEM2's whole-leg CT at 0.8 x 0.8 x 1.0 mm, worst
+    # miss 1.91 -> 1.57 mm beside the fibula).
+    weak = (field >= 0.5 * (level + tissue)) & ~ndimage.binary_dilation(other, iterations=_GROW_VOXELS)
     own |= ndimage.binary_dilation(own, iterations=_GROW_VOXELS, mask=weak)
     del weak
     own = ndimage.binary_closing(own, structure=ndimage.generate_binary_structure(3, 1), iterations=1)
@@ -176,9 +181,9 @@ def segment_bone(
             volume_mm3=b.volume_mm3,
             length_mm=b.length_mm,
             centroid=b.centroid,
-            role=roles[b.label],
+            role=role,
         )
-        for b in bodies
+        for b, role in _named_bodies(bodies, tibia, fibulae, settings)
     )
     return BoneMesh(
         vertices=np.asarray(mesh.vertices, dtype=np.float64),
@@ -220,24 +225,24 @@ def _bodies(labels: np.ndarray, count: int, offset: np.ndarray, volume: CTVolume
         kji = np.argwhere(part) * step + np.array([s.start for s in box]) + offset
         xyz = volume.index_to_world(kji[:, ::-1])
         centroid = xyz.mean(axis=0)
-        _, _, vt = np.linalg.svd(xyz - centroid, full_matrices=False)
-        along = (xyz - centroid) @ vt[0]
+        shape = body_shape(xyz, float(sizes[label] * voxel_mm3), centroid)
         bodies.append(
             _Body(
                 label=int(label),
                 voxels=int(sizes[label]),
-                volume_mm3=float(sizes[label] * voxel_mm3),
+                volume_mm3=shape.volume,
                 centroid=centroid,
-                axis=vt[0],
-                length_mm=float(along.max() - along.min()),
+                axis=shape.axis,
+                length_mm=shape.length,
                 slices=box,
+                shape=shape,
             )
         )
     return bodies
 
 
-def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str]]:
-    """The tibia among the bodies, and a role for every body.
+def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, frozenset[int]]:
+    """The tibia among the bodies, and the labels of the fibulae found beside a long bone.
 
     Long bodies are those at least half as long as the longest. A long body
     lying beside a bulkier one (spans along the limb overlapping, centroids
@@ -248,7 +253,6 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
     """
     if not bodies:
         raise InputError("no bone found", path)
-    roles = {b.label: "fragment" for b in bodies}
     longest = max(b.length_mm for b in bodies)
     biggest = max(bodies, key=lambda b: b.volume_mm3)
     limb = biggest.axis
@@ -278,8 +282,6 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
         if hosts:
             fibulae[b.label] = min(hosts, key=lambda a: apart(a, b)).label
     main = [b for b in long if b.label not in fibulae]
-    for label in fibulae:
-        roles[label] = "fibula"
     candidates = main
     if len(candidates) > 1:
         with_fibula = [b for b in candidates if b.label in fibulae.values()]
@@ -300,12 +302,18 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, dict[int, str
             "fibula or talus); crop the volume to one lower leg",
             path,
         )
-    tibia = candidates[0]
-    roles[tibia.label] = "tibia"
-    for b in main:
-        if b is not tibia:
-            roles[b.label] = "other bone"
-    return tibia, roles
+    return candidates[0], frozenset(fibulae)
+
+
+def _named_bodies(bodies: list[_Body], tibia: _Body, fibulae: frozenset[int], settings: MeshSettings
+                  ) -> list[tuple[_Body, str]]:
+    """Every body with its role by anatomy (``bonecad.mesh.bodies.body_roles``, as a mesh's intake names
+    them: femur, patella, talus, ...), the tibia first (the kept body, as in a mesh's intake). A fibula
+    ``_pick_tibia`` found beside the tibia stays a fibula. The tibia's plateau end is the superior one (LPS z)."""
+    ordered = [tibia, *(b for b in bodies if b is not tibia)]
+    up = tibia.axis if tibia.axis[2] > 0 else -tibia.axis
+    named = body_roles([b.shape for b in ordered], 0, up, settings)
+    return [(b, "fibula" if b.label in fibulae else role) for b, role in zip(ordered, named)]
 
 
 def _check_whole(tibia: _Body, offset: np.ndarray, volume: CTVolume, path: object) -> None:

@@ -87,10 +87,12 @@ def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: n
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(n, 3) unit vertex normals, area-weighted sums of the incident triangle normals."""
-    tri = vertices[triangles]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    a = np.take(vertices, triangles[:, 0], axis=0)  # (np.take: several times faster than vertices[...] on rows)
+    u, v = np.take(vertices, triangles[:, 1], axis=0) - a, np.take(vertices, triangles[:, 2], axis=0) - a
+    fn = (u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+          u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])  # u x v, written out (the same operations as np.cross)
     corners = np.ascontiguousarray(triangles.T).ravel()  # corner 0 of every triangle, then 1, then 2
-    acc = np.stack([np.bincount(corners, np.tile(fn[:, j], 3), minlength=len(vertices)) for j in range(3)], axis=1)
+    acc = np.stack([np.bincount(corners, np.tile(fn[j], 3), minlength=len(vertices)) for j in range(3)], axis=1)
     return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-300)
 
 

@@ -155,17 +155,21 @@ class _Body:
 
 def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts) -> list[_Body]:
     """Split into connected bodies, each oriented coherently and outward; largest volume first."""
-    count, vertex_body = vertex_components(faces, len(vertices))
+    count, vertex_body = vertex_components(edges)
     edge_body = vertex_body[edges.low_vertex()]
     open_bodies = np.bincount(edge_body[edges.faces_per_edge != 2], minlength=count) > 0
     incoherent = np.bincount(edge_body[~edges.consistent], minlength=count) > 0
     face_body = vertex_body[faces[:, 0]]
-    face_order = np.argsort(face_body, kind="stable")  # each body's faces in input order
+    narrow = face_body.astype(np.int16) if count <= np.iinfo(np.int16).max else face_body  # (a radix sort)
+    face_order = np.argsort(narrow, kind="stable")  # each body's faces in input order
     face_bounds = np.r_[0, np.cumsum(np.bincount(face_body, minlength=count))]
-    tri = vertices[faces]
     area = triangle_areas(vertices, faces)
-    weighted_centre = np.stack([np.bincount(face_body, area * tri[:, :, k].mean(axis=1), minlength=count)
+    corner = [np.take(vertices, faces[:, k], axis=0) for k in range(3)]
+    centre_sum = corner[0] + corner[1] + corner[2]  # three times the triangle centres
+    del corner
+    weighted_centre = np.stack([np.bincount(face_body, area * (centre_sum[:, k] / 3.0), minlength=count)
                                 for k in range(3)], axis=1)
+    del centre_sum
     centroids = weighted_centre / np.maximum(np.bincount(face_body, area, minlength=count), 1e-300)[:, None]
     volumes = signed_volumes(vertices, faces, face_body, count)
     bodies = []

@@ -18,8 +18,8 @@ import numpy as np
 def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(f,) mm^2: the area of each triangle (half the norm of the cross product of two edges, written out:
     the same operations as ``np.cross`` and ``np.linalg.norm``, without their temporaries)."""
-    a = vertices[faces[:, 0]]
-    u, v = vertices[faces[:, 1]] - a, vertices[faces[:, 2]] - a
+    a = np.take(vertices, faces[:, 0], axis=0)  # (np.take: several times faster than vertices[...] on rows)
+    u, v = np.take(vertices, faces[:, 1], axis=0) - a, np.take(vertices, faces[:, 2], axis=0) - a
     x = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
     y = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
     z = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]

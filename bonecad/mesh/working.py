@@ -8,6 +8,13 @@ through ``fast_simplification``) to triangles of about ``working_edge_mm``;
 the largest distance of the full mesh's vertices from the copy is measured
 on every run and held below ``working_max_deviation_mm`` (the copy gets more
 triangles otherwise). The deviation of the models is measured against the full mesh.
+
+Vertex clustering on a grid before the simplifier (to let it see fewer
+triangles) was measured and dropped: on TLEM2 split 64-fold (5.6 M
+triangles) cells of 0.2 / 0.3 mm left 2.0 M / 1.0 M triangles and cut the
+simplification from 19 to 7.5 / 3.0 s CPU, but the clustered mesh was no
+longer closed (triangles folded over, sheets merged in a cell) and the copy
+lay 0.29 / 0.44 mm from the mesh at its worst vertex (bound 0.1 mm).
 """
 from __future__ import annotations
 

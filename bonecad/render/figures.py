@@ -25,6 +25,7 @@ wave), so they fade to grey instead of aliasing into noise.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -90,16 +91,20 @@ def to_screen(points: np.ndarray, axes: np.ndarray) -> np.ndarray:
     return np.einsum("...j,kj->...k", points, axes)
 
 
+#: the attributes of the samples at some indices (k,): their normals (k, 3) and values (k, m)
+Attributes = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
 def splat(
     points: np.ndarray,
-    normals: np.ndarray,
-    values: np.ndarray,
+    attributes: Attributes,
     axes: np.ndarray,
     *,
     pixel_mm: float,
     bounds_mm: tuple[float, float, float, float],
 ) -> Raster:
-    """Z-buffer ``points`` (N, 3) with ``normals`` (N, 3) and ``values`` (N, k) into pixels."""
+    """Z-buffer ``points`` (N, 3) into pixels, with the normals and values of the samples that show
+    (``attributes``: computed for those only, about a fifth of the samples in each view)."""
     s = to_screen(points, axes)
     left, right, bottom, top = bounds_mm
     width = int(np.ceil((right - left) / pixel_mm))
@@ -120,10 +125,11 @@ def splat(
     mask[pix[first]] = True
     depth = np.full(height * width, -np.inf)
     depth[pix[first]] = s[first, 2]
+    normals, values = attributes(first)
     vals = np.zeros((height * width, values.shape[1]))
-    vals[pix[first]] = values[first]
+    vals[pix[first]] = values
     nrm = np.zeros((height * width, 3))
-    nrm[pix[first]] = to_screen(normals[first], axes)
+    nrm[pix[first]] = to_screen(normals, axes)
     raster = Raster(
         mask.reshape(height, width),
         depth.reshape(height, width),
@@ -131,47 +137,42 @@ def splat(
         nrm.reshape(height, width, 3),
         (left, right, bottom, top),
     )
-    return _fill_pinholes(_fill_pinholes(raster))
+    _fill_pinholes(raster)
+    _fill_pinholes(raster)
+    return raster
 
 
-def _fill_pinholes(raster: Raster) -> Raster:
-    """Fill uncovered pixels with at least 5 of 8 covered neighbours from the nearest neighbour.
+def _fill_pinholes(raster: Raster) -> None:
+    """Fill uncovered pixels with at least 5 of 8 covered neighbours from the nearest neighbour, in place.
 
     Random splatting leaves isolated empty pixels inside the surface; true
-    silhouettes have fewer covered neighbours and stay as they are.
+    silhouettes have fewer covered neighbours and stay as they are. Counts in
+    uint8 over the image; the nearest neighbour is looked up at the holes only.
     """
     mask = raster.mask
     padded = np.pad(mask, 1)
     depth = np.pad(raster.depth, 1, constant_values=-np.inf)
     h, w = mask.shape
     shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
-    count = sum(padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w].astype(int) for dy, dx in shifts)
     # a pixel the front surface missed shows a sample from behind: far deeper than
     # nearly all its neighbours (10 pixels); treat it as empty too
     pixel_mm = (raster.extent_mm[3] - raster.extent_mm[2]) / h
-    nearer = sum(
-        (depth[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] > raster.depth + 10 * pixel_mm).astype(int)
-        for dy, dx in shifts
-    )
+    behind = raster.depth + 10 * pixel_mm
+    count = np.zeros(mask.shape, dtype=np.uint8)
+    nearer = np.zeros(mask.shape, dtype=np.uint8)
+    for dy, dx in shifts:
+        count += padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+        nearer += depth[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] > behind
     hole = (~mask & (count >= 5)) | (mask & (nearer >= 6))
     if not hole.any():
-        return raster
-    best = np.full(mask.shape, -np.inf)
-    src = np.zeros(mask.shape + (2,), dtype=np.int64)
-    grid = np.indices(mask.shape)
-    rows, cols = grid[0], grid[1]
-    for dy, dx in shifts:
-        d = depth[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
-        better = d > best
-        best = np.where(better, d, best)
-        src[better] = np.stack([rows[better] + dy, cols[better] + dx], axis=1)
+        return
     r, c = np.nonzero(hole)
-    sr, sc = src[r, c, 0], src[r, c, 1]
-    out = [a.copy() for a in (raster.mask, raster.depth, raster.values, raster.normal)]
-    out[0][r, c] = True
-    for arr in out[1:]:
-        arr[r, c] = arr[sr, sc]
-    return Raster(out[0], out[1], out[2], out[3], raster.extent_mm)
+    around = np.stack([depth[1 + dy + r, 1 + dx + c] for dy, dx in shifts], axis=1)
+    step = np.array(shifts)[np.argmax(around, axis=1)]  # the nearest neighbour (the first of equals)
+    sr, sc = r + step[:, 0], c + step[:, 1]
+    for arr in (raster.depth, raster.values, raster.normal):
+        arr[r, c] = arr[sr, sc]  # the sources read before any is written
+    raster.mask[r, c] = True
 
 
 def _view_bounds(vertices: np.ndarray, axes: np.ndarray, margin: float = 0.03):
@@ -182,9 +183,9 @@ def _view_bounds(vertices: np.ndarray, axes: np.ndarray, margin: float = 0.03):
 
 
 def _dense_samples(vertices, triangles, pixel_mm: float, per_pixel: float, seed: int, cap: int = 2_000_000):
-    area = triangle_areas(vertices, triangles).sum()
-    count = int(min(cap, max(10_000, per_pixel * area / pixel_mm**2)))
-    return sample_surface(vertices, triangles, count, seed=seed)
+    areas = triangle_areas(vertices, triangles)
+    count = int(min(cap, max(10_000, per_pixel * areas.sum() / pixel_mm**2)))
+    return sample_surface(vertices, triangles, count, seed=seed, areas=areas)
 
 
 def render_mesh_values(
@@ -209,11 +210,14 @@ def render_mesh_values(
     bounds = [_view_bounds(vertices, a) for a in frames]
     pixel = min((b[3] - b[2]) / height_px for b in bounds)
     samples = _dense_samples(vertices, triangles, pixel, 2.0, seed)
-    tri = triangles[samples.triangle]
     vn = vertex_normals(vertices, triangles)
-    normals = np.einsum("nk,nkj->nj", samples.barycentric, vn[tri])
-    values = np.einsum("nk,nk->n", samples.barycentric, vertex_values[tri])[:, None]
-    return [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
+
+    def attributes(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        tri, bary = triangles[samples.triangle[index]], samples.barycentric[index]
+        return (np.einsum("nk,nkj->nj", bary, vn[tri]),
+                np.einsum("nk,nk->n", bary, vertex_values[tri])[:, None])
+
+    return [splat(samples.points, attributes, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
 
 
 def render_tessellation_normals(
@@ -237,13 +241,16 @@ def render_tessellation_normals(
     bounds = [_view_bounds(tess.vertices, a) for a in frames]
     pixel = min((b[3] - b[2]) / height_px for b in bounds)
     samples = _dense_samples(tess.vertices, tess.triangles, pixel, 2.0, seed)
-    tri = tess.triangles[samples.triangle]
-    normals = np.einsum("nk,nkj->nj", samples.barycentric, tess.normals[tri])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)  # kept where no surface
-    uv = np.einsum("nk,nkj->nj", samples.barycentric, tess.uv[tri])
-    face = tess.triangle_face[samples.triangle]
-    values = np.column_stack([face.astype(float), uv, samples.triangle.astype(float)])
-    rasters = [splat(samples.points, normals, values, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
+
+    def attributes(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        triangle, bary = samples.triangle[index], samples.barycentric[index]
+        tri = tess.triangles[triangle]
+        normals = np.einsum("nk,nkj->nj", bary, tess.normals[tri])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)  # kept where no surface
+        uv = np.einsum("nk,nkj->nj", bary, tess.uv[tri])
+        return normals, np.column_stack([tess.triangle_face[triangle].astype(float), uv, triangle.astype(float)])
+
+    rasters = [splat(samples.points, attributes, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
     for raster, axes in zip(rasters, frames):
         _exact_normals(raster, axes, tess)
     return rasters
@@ -361,13 +368,12 @@ def save_figure(fig, path: str | Path, *, palette: bool = False) -> Path:
     zebra figure: lossless, 2.5x smaller than matplotlib's RGBA), else RGB, or with ``palette`` 256
     colours (octree; no visible change on a shaded deviation map, 2.8x smaller: 1.6 to 0.57 MB; it
     would band a grey-shaded figure such as the curve plan)."""
-    import io
-
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from PIL import Image
 
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png")
-    image = Image.open(buffer).convert("RGB")
+    canvas = FigureCanvasAgg(fig)  # the pixels savefig would encode, without its PNG round trip
+    canvas.draw()
+    image = Image.fromarray(np.asarray(canvas.buffer_rgba())).convert("RGB")
     rgb = np.asarray(image)
     if (rgb[..., 0] == rgb[..., 1]).all() and (rgb[..., 1] == rgb[..., 2]).all():
         image = image.convert("L")

@@ -27,9 +27,13 @@ def bone_profile(bone: BoneMesh, settings: Settings) -> BoneProfile:
 
 def bone_settings(bone: BoneMesh, settings: Settings) -> Settings:
     """The run's settings for this bone: its profile's own values laid over them, the bone named (and
-    checked: see ``bone_profile``)."""
+    checked: see ``bone_profile``); for a mesh segmented from a CT, the T-spline's target at least
+    ``[tspline] segmented_share_within_mm`` (the larger share, the smaller distance)."""
     profile = bone_profile(bone, settings)
     tuned = settings.for_bone(profile)
+    if bone.segmented:
+        (share, mm), (ct_share, ct_mm) = tuned.tspline.target_share_within_mm, tuned.tspline.segmented_share_within_mm
+        tuned = tuned.replace("tspline", target_share_within_mm=[max(share, ct_share), min(mm, ct_mm)])
     return replace(tuned, pipeline=replace(tuned.pipeline, bone=profile.frame))
 
 

@@ -245,8 +245,8 @@ def reconstruct_bone(
             if until == "models":
                 with timings.stage("closest-point tree of the mesh"):
                     # the tree, its vertex normals and triangle areas, built in idle time for both models'
-                    # analysis (their jobs fork later)
-                    _ = bone.locator.vertex_normals, bone.locator.triangle_areas
+                    # analysis (their jobs fork later); the working copy's for their 3-D views
+                    _ = bone.locator.vertex_normals, bone.locator.triangle_areas, bone.work.locator.vertex_normals
             with timings.stage("waiting for the frame and the contour curves"):
                 frame, contours, front_timings = front.result()
             timings.update(front_timings)
@@ -377,8 +377,8 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     tess = tessellate_model(model.shape, settings.analysis)
     side = ex.submit(zebra_and_continuity, name, model, tess, out_dir, view_frame, settings)
-    view = ex.submit(model_view, name, tess.vertices, tess.triangles, tess.triangle_face, bone.work.vertices,
-                     bone.work.faces, settings.analysis.view_max_triangles)
+    view = ex.submit(model_view, name, tess.vertices, tess.triangles, tess.triangle_face, bone.work.locator,
+                     settings.analysis.view_max_triangles)
     deviation = model_deviation(tess, bone, frame, settings.analysis)
     shown = bone.work  # the colour map draws the working copy (its vertices' deviations)
     colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", shown.vertices, shown.faces,

@@ -650,7 +650,7 @@ def from_faces(
     outside_edges = sorted({edge_of[j] for j in range(n_face_links, len(origin))})
     doc = TSMDocument(
         header=header,
-        faces=np.array([[sum(len(x) for x in loops[:f]), 0] for f in range(len(loops))], dtype=np.int64),
+        faces=np.column_stack([np.cumsum([0] + [len(x) for x in loops[:-1]]), np.zeros(len(loops))]).astype(np.int64),
         edges=np.array(edges, dtype=np.int64),
         intervals=np.array(values, dtype=np.float64),
         vertices=np.array(vertex_link, dtype=np.int64),
