@@ -82,7 +82,7 @@ class MorphometrySettings:
     of the plateau width from each edge), the plateau surface's window for the slopes (mm below the plateau
     centre), the distal articular surface (band about the plafond level, mm; facing within degrees of distal),
     the distal zone of the bimalleolar width (mm above the plafond centre), the medial malleolus's section of the
-    torsion (mm below it)."""
+    torsion (mm below it), the tibial tuberosity's search band and its ends (shares of the mechanical length)."""
 
     plateau_section_depth_mm: float
     condyle_share: float
@@ -91,6 +91,8 @@ class MorphometrySettings:
     plafond_facing_deg: float
     distal_zone_mm: float
     malleolus_depth_mm: float
+    tuberosity_band: tuple[float, float]
+    tuberosity_band_end: float
 
 
 @dataclass(frozen=True)
@@ -178,7 +180,8 @@ class TSplineSettings:
 @dataclass(frozen=True)
 class TemplateSettings:
     """The template T-mesh (one topology for every tibia): its parameter domain (template mm), knot
-    intervals per region, T-junction layout, fit controls (fairness weights, parameter corrections,
+    intervals per region, the share of the proximal meridians where the tuberosity's height lands, T-junction
+    layout, fit controls (fairness weights, parameter corrections,
     point spacing mm) and the figures it reports (share within mm, max and RMS mm)."""
 
     s_period_mm: float
@@ -190,6 +193,7 @@ class TemplateSettings:
     distal_t_intervals: int
     shaft_t_intervals: int
     proximal_t_intervals: int
+    tuberosity_share: float
     apex_rows: int
     shaft_transition_rows: int
     fairness_weight: float

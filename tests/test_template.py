@@ -1,4 +1,4 @@
-"""The template T-mesh, the shape model and morph (issue 21), on a synthetic cohort of phantoms with varied
+"""The template T-mesh, the shape model and morph (issue 21), on synthetic cohorts of phantoms with varied
 design parameters (tests/cohorts.py; built once for the module) and on the real tibias."""
 from __future__ import annotations
 
@@ -9,31 +9,43 @@ import numpy as np
 import pytest
 
 from bonecad.run.cli import main
-from tests.cohorts import PHANTOMS, design
+from tests.cohorts import design, phantom_parameters, varied
 from tests.defaults import SETTINGS
 
 from .conftest import real_mesh_params
 
 pytestmark = pytest.mark.slow
 
-#: the varied phantoms (``cohorts.varied_parameters``: every design parameter varied, slopes and torsion too) held
-#: out of the shape model for the morph: two whose every design parameter lies inside the other 18's range (a
-#: morph outside the model's range is refused); the other 18 are the training cohort
-HELD_OUT = (15, 17)
-TRAINING = PHANTOMS - len(HELD_OUT)
+#: the shape model's synthetic cohort (``cohorts.phantom_parameters``: five design parameters varied): training
+#: phantoms, plus held-out ones for the morph
+TRAINING, HELD_OUT = 12, 2
 
 
 @pytest.fixture(scope="module")
-def cohort(varied_phantoms, tmp_path_factory):
+def cohort(tmp_path_factory):
     """(cohort folder, [(name, BoneMesh, TibiaParameters)], {name: TemplateFit}, held-out [(BoneMesh, params)]);
     the fits on both cores."""
+    import bonecad
     from bonecad.run.shapes import write_cohort
 
-    bones = [(f"phantom{i:02d}", bone, p) for i, (p, bone) in enumerate(varied_phantoms) if i not in HELD_OUT]
+    params = phantom_parameters(TRAINING + HELD_OUT, seed=1)
+    bones = [(f"phantom{i:02d}", bonecad.phantom_tibia(p), p) for i, p in enumerate(params[:TRAINING])]
     folder = tmp_path_factory.mktemp("cohort") / "cohort"
-    fits = write_cohort([(n, b, design(p)) for n, b, p in bones], folder, SETTINGS, background=True)
-    held = [(bone, p) for i, (p, bone) in enumerate(varied_phantoms) if i in HELD_OUT]
+    fits = write_cohort([(n, b, varied(p)) for n, b, p in bones], folder, SETTINGS, background=True)
+    held = [(bonecad.phantom_tibia(p), p) for p in params[TRAINING:]]
     return folder, bones, fits, held
+
+
+@pytest.fixture(scope="module")
+def varied_fits(varied_phantoms, tmp_path_factory):
+    """The template fitted to the 20 varied phantoms (``cohorts.varied_parameters``: every design parameter
+    varied, slopes and torsion too): [(name, BoneMesh)], {name: TemplateFit}; the fits on both cores."""
+    from bonecad.run.shapes import write_cohort
+
+    bones = [(f"varied{i:02d}", bone, p) for i, (p, bone) in enumerate(varied_phantoms)]
+    fits = write_cohort([(n, b, design(p)) for n, b, p in bones], tmp_path_factory.mktemp("varied") / "cohort",
+                        SETTINGS, background=True)
+    return [(n, b) for n, b, _ in bones], fits
 
 
 @pytest.fixture(scope="module")
@@ -62,29 +74,24 @@ def test_one_topology_for_every_bone(cohort):
     assert again.share_within == fit.share_within
 
 
-def test_template_fits_phantoms_within_half_mm(cohort):
-    _, _, fits, _ = cohort
+def test_template_fits_phantoms_within_half_mm(varied_fits):
+    _, fits = varied_fits
     shares = {name: fit.share_within for name, fit in fits.items()}
     assert min(shares.values()) >= 0.99, shares
 
 
 def _landmarks(bone, frame) -> dict[str, np.ndarray]:
     """Landmarks found on the bone itself (bone coordinates, mm): the medial malleolus tip (the lowest
-    medial vertex below the distal boundary) and the tibial tuberosity (between 75 % and 92 % of the
-    mechanical length, the anterior vertex standing furthest in front of the line through the most anterior
-    points at the band's two ends: a small tuberosity does not give way to the plateau's anterior rim)."""
+    medial vertex below the distal boundary) and the tibial tuberosity (``morphometry.tibial_tuberosity``)."""
+    from bonecad.anatomy.morphometry import tibial_tuberosity
+
     v = frame.to_bone(bone.vertices)
     medial = v[(v[:, 0] < 0) & (v[:, 2] < frame.distal_boundary_mm)]
-    length = frame.mechanical_length_mm
-    band = v[(v[:, 2] > 0.75 * length) & (v[:, 2] < 0.92 * length) & (v[:, 1] > np.abs(v[:, 0]))]
-    low = band[band[:, 2] < 0.77 * length]
-    high = band[band[:, 2] > 0.90 * length]
-    a, b = low[np.argmax(low[:, 1])], high[np.argmax(high[:, 1])]
-    in_front = band[:, 1] - (a[1] + (band[:, 2] - a[2]) * (b[1] - a[1]) / (b[2] - a[2]))
-    return {"medial malleolus tip": medial[np.argmin(medial[:, 2])], "tibial tuberosity": band[np.argmax(in_front)]}
+    return {"medial malleolus tip": medial[np.argmin(medial[:, 2])],
+            "tibial tuberosity": tibial_tuberosity(bone, frame, SETTINGS.morphometry)}
 
 
-def test_landmarks_map_to_one_template_place(cohort):
+def test_landmarks_map_to_one_template_place(varied_fits):
     """For each landmark: its template parameters on each bone's own fit (the closest point), evaluated on
     the mean shape; the points agree within 3 mm (largest distance from their centroid). The plateau and
     plafond centres lie in the apex holes, where every bone's template ends in the same ring: there the
@@ -93,12 +100,12 @@ def test_landmarks_map_to_one_template_place(cohort):
     from bonecad.splines.tspline.fit import initial_parameters
     from bonecad.tspline_model.template import region_bounds, template_tspline
 
-    _, bones, fits, _ = cohort
+    bones, fits = varied_fits
     mean = template_tspline(np.mean([f.control_points for f in fits.values()], axis=0), SETTINGS.template)
     on_mean: dict[str, list[np.ndarray]] = {}
     bounds = region_bounds(SETTINGS.template)
     s_ring = np.linspace(0.0, SETTINGS.template.s_period_mm, 64, endpoint=False)
-    for name, bone, _ in bones:
+    for name, bone in bones:
         frame = bonecad.anatomical_frame(bone)
         ts = fits[name].tspline
         for label, point in _landmarks(bone, frame).items():
@@ -129,7 +136,7 @@ def test_shape_model_saves_and_loads(model_dir, cohort):
 
     model = load_model(model_dir[0])
     assert len(model.bones) == TRAINING
-    assert set(model.parameter_names) == set(design(cohort[1][0][2]))
+    assert set(model.parameter_names) == set(varied(cohort[1][0][2]))
     assert np.all(np.diff(model.compactness()) >= 0) and model.compactness()[-1] == pytest.approx(1.0)
     # the training weights rebuild each training shape exactly
     np.testing.assert_allclose(model.shape(model.weights[0]), cohort[2][model.bones[0]].control_points, atol=1e-6)
@@ -143,9 +150,9 @@ def test_morph_from_design_parameters_reproduces_held_out_phantoms(model_dir, co
     model = load_model(model_dir[0])
     for bone, params in cohort[3]:
         _, points, weights = template_fit_bone(bone, SETTINGS)
-        cp = model.shape(morph_weights(model, design(params), SETTINGS.shape_model))
+        cp = model.shape(morph_weights(model, varied(params), SETTINGS.shape_model))
         rms = surface_distance_mm(cp, SETTINGS.template, points, weights)
-        assert rms < 1.0, (design(params), rms)
+        assert rms < 1.0, (varied(params), rms)
 
 
 def test_morph_command_writes_cad_files(model_dir, tmp_path, capsys):

@@ -128,6 +128,23 @@ def ankle_turn_deg(bone: BoneMesh, frame: AnatomicalFrame, settings: Morphometry
     return float(np.degrees(np.arctan2(-malleolus[1], -malleolus[0])))
 
 
+def tibial_tuberosity(bone: BoneMesh, frame: AnatomicalFrame, settings: MorphometrySettings) -> np.ndarray:
+    """The tibial tuberosity (bone coordinates, mm): among the working copy's vertices in the band
+    ``[morphometry] tuberosity_band`` (shares of the mechanical length) that lie in front of the axis
+    (within 45 degrees of anterior), the one standing furthest in front of the line through the most anterior
+    points of the band's two ends: a small tuberosity does not give way to the plateau's anterior rim."""
+    v = frame.to_bone(bone.work.vertices)
+    length = frame.mechanical_length_mm
+    (lo, hi), end = settings.tuberosity_band, settings.tuberosity_band_end
+    band = v[(v[:, 2] > lo * length) & (v[:, 2] < hi * length) & (v[:, 1] > np.abs(v[:, 0]))]
+    low, high = band[band[:, 2] < (lo + end) * length], band[band[:, 2] > (hi - end) * length]
+    if not len(low) or not len(high):
+        raise FitError("no anterior surface at the tibial tuberosity's level")
+    a, b = low[np.argmax(low[:, 1])], high[np.argmax(high[:, 1])]
+    in_front = band[:, 1] - (a[1] + (band[:, 2] - a[2]) * (b[1] - a[1]) / (b[2] - a[2]))
+    return band[np.argmax(in_front)]
+
+
 def torsion_deg(plateau: np.ndarray, notch_x: float, malleolus: np.ndarray) -> float:
     """Tibial torsion (degrees, external positive) in bone coordinates (x lateral, y anterior, plafond
     centre at 0): from the posterior condylar line of the plateau section, a (p, 2) loop (its convex hull's

@@ -29,7 +29,7 @@ from bonecad.analysis.shape_model import (ShapeModel, baselines_mm, build_shape_
                                           predict_parameters,
                                           specificity_mm)
 from bonecad.anatomy.frame import AnatomicalFrame, anatomical_frame
-from bonecad.anatomy.morphometry import ankle_turn_deg, measure_tibia
+from bonecad.anatomy.morphometry import ankle_turn_deg, measure_tibia, tibial_tuberosity
 from bonecad.contours.curves import contour_curves
 from bonecad.errors import InputError
 from bonecad.mesh.bone_mesh import BoneMesh
@@ -60,7 +60,8 @@ def template_fit_bone(bone: BoneMesh, settings: Settings, *, frame: AnatomicalFr
         contours = contour_curves(bone, frame, settings=settings.curves)
         radius = settings.curves.apex_hole_radius_mm
         fit = fit_template(bone, frame, contours, settings.template, apex_hole_radius_mm=radius,
-                           ankle_turn_deg=ankle_turn_deg(bone, frame, settings.morphometry))
+                           ankle_turn_deg=ankle_turn_deg(bone, frame, settings.morphometry),
+                           tuberosity_height_mm=float(tibial_tuberosity(bone, frame, settings.morphometry)[2]))
         points, weights = surface_targets(bone, frame, settings.template, apex_hole_radius_mm=radius)
     return fit, points, weights
 

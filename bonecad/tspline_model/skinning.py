@@ -78,7 +78,7 @@ class CurveData:
     region: np.ndarray  # (n,) 0 distal, 1 shaft, 2 proximal
 
 
-def _arc_samples(curve, count: int) -> tuple[np.ndarray, np.ndarray, float]:
+def arc_samples(curve, count: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Points at equal arc-length shares along an open curve: (points, shares, length mm)."""
     u = np.linspace(0.0, 1.0, 801)
     p = curve(u)
@@ -100,8 +100,8 @@ def parameterisation(contours: ContourSet) -> Parameterisation:
         pts = c.curve(np.linspace(0.0, 1.0, 64, endpoint=False))
         centre = np.clip((c.level - z_d) / (z_p - z_d), 0, 1) * loc[1, :2]
         radii.append(np.linalg.norm(pts[:, :2] - centre, axis=1).mean())
-    l_d = float(np.mean([_arc_samples(c.curve, 8)[2] for c in contours.distal]))
-    l_p = float(np.mean([_arc_samples(c.curve, 8)[2] for c in contours.proximal]))
+    l_d = float(np.mean([arc_samples(c.curve, 8)[2] for c in contours.distal]))
+    l_p = float(np.mean([arc_samples(c.curve, 8)[2] for c in contours.proximal]))
     period = 2 * np.pi * float(np.mean(radii))
     return Parameterisation(period, l_d, l_d + (z_p - z_d), l_d + (z_p - z_d) + l_p, z_d, z_p, loc.copy())
 
@@ -110,7 +110,7 @@ def curve_data(contours: ContourSet, par: Parameterisation) -> CurveData:
     """All contour-curve points with their (s, t) (see the module docstring)."""
     pts, ss, tt, reg = [], [], [], []
     for c in contours.distal:
-        p, share, _ = _arc_samples(c.curve, _OPEN_SAMPLES)  # share 0 at the apex hole
+        p, share, _ = arc_samples(c.curve, _OPEN_SAMPLES)  # share 0 at the apex hole
         pts.append(p)
         ss.append(np.full(len(p), (c.angle % 360.0) / 360.0 * par.s_period))
         tt.append(share * par.t_distal)
@@ -124,7 +124,7 @@ def curve_data(contours: ContourSet, par: Parameterisation) -> CurveData:
         tt.append(np.full(len(p), par.t_distal + (c.level - par.z_distal)))
         reg.append(np.ones(len(p), int))
     for c in contours.proximal:
-        p, share, _ = _arc_samples(c.curve, _OPEN_SAMPLES)  # share 0 at the apex hole
+        p, share, _ = arc_samples(c.curve, _OPEN_SAMPLES)  # share 0 at the apex hole
         pts.append(p)
         ss.append(np.full(len(p), (c.angle % 360.0) / 360.0 * par.s_period))
         tt.append(par.t_end - share * (par.t_end - par.t_proximal))

@@ -6,9 +6,12 @@ template mm). A bone's own parameterisation (:mod:`.skinning`: s the angle
 about the mechanical axis, distally, or the local proximal axis, proximally,
 from lateral towards anterior; t the meridian arc from the distal apex ring,
 the height along the shaft, the meridian arc to the proximal apex ring) is
-mapped linearly per region onto the template's: s by its period, t by each
-region's share (distal, shaft, proximal, their boundaries from the frame).
-So control point i sits on the same anatomical place on every bone.
+mapped onto the template's following the anatomy (``to_template``): s by
+its period, turned on the distal end to the ankle's own lateral (torsion);
+t by each region's share (distal, shaft, proximal, their boundaries from the
+frame), the proximal meridians bent so that the tibial tuberosity's height
+lands at one template t. So control point i sits on the same anatomical
+place on every bone.
 
 The fit is the model's (:mod:`.model`) without refinement: skin the contour
 curves on the template mesh, project the mesh points, then parameter
@@ -40,7 +43,7 @@ from bonecad.splines.tspline import TMesh, TSpline
 from bonecad.splines.tspline.fit import FitTolerances, fit_adaptive, initial_parameters, solve_control_points
 from bonecad.tspline_model.caps import ApexCap
 from bonecad.tspline_model.model import apex_caps, hole_masks, occ_shape, ring_constraints
-from bonecad.tspline_model.skinning import Parameterisation, curve_data, parameterisation
+from bonecad.tspline_model.skinning import Parameterisation, arc_samples, curve_data, parameterisation
 
 
 @dataclass(frozen=True)
@@ -126,16 +129,56 @@ def template_tspline(control_points: np.ndarray, settings: TemplateSettings) -> 
     return blank.with_control_points(cp)
 
 
-def to_template(par: Parameterisation, s: np.ndarray, t: np.ndarray, settings: TemplateSettings, *,
-                ankle_turn_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """A bone's (s, t) (its :class:`Parameterisation`) -> the template's: t linearly per region; s by the
-    period, its angle counted from the ankle's own lateral (``ankle_turn_deg``, degrees from the frame's
-    lateral towards anterior) on the distal end, from the frame's lateral on the proximal end, the turn
-    fading linearly along the shaft: the tibia's torsion turns its distal end against its plateau, and the
-    template's angles follow, so the malleolus lies at one template angle whatever the torsion."""
+@dataclass(frozen=True)
+class AnatomicalWarp:
+    """How a bone's own (s, t) bend to follow its anatomy on the template (see ``to_template``).
+
+    ankle_turn_deg : direction of the ankle's lateral axis (degrees from the frame's lateral towards anterior);
+    meridian_angle_deg, tuberosity_share : (m,) the proximal meridians' angles (degrees) and the share of each
+    one's arc from the apex ring (0) to the shaft boundary (1) at which it comes down to the tuberosity's height.
+    """
+
+    ankle_turn_deg: float
+    meridian_angle_deg: np.ndarray
+    tuberosity_share: np.ndarray
+
+
+def anatomical_warp(contours: ContourSet, *, ankle_turn_deg: float, tuberosity_height_mm: float) -> AnatomicalWarp:
+    """The warp of a bone with these contour curves, ankle direction (``anatomy.morphometry.ankle_turn_deg``)
+    and tuberosity height (bone z, mm; ``anatomy.morphometry.tibial_tuberosity``). Raises FitError when a
+    proximal meridian does not come down to the tuberosity's height (a tuberosity below the proximal region)."""
+    angles, shares = [], []
+    for c in contours.proximal:
+        points, share, _ = arc_samples(c.curve, 801)
+        above = np.nonzero(points[::-1, 2] >= tuberosity_height_mm)[0]  # walking up from the shaft boundary
+        if not len(above) or above[0] == 0:
+            raise FitError(f"the tibial tuberosity ({tuberosity_height_mm:.1f} mm above the plafond centre) lies "
+                           f"outside the proximal meridian at {c.angle % 360.0:.0f} degrees")
+        angles.append(c.angle % 360.0)
+        shares.append(share[len(share) - 1 - above[0]])
+    order = np.argsort(angles)
+    return AnatomicalWarp(float(ankle_turn_deg), np.asarray(angles)[order], np.asarray(shares)[order])
+
+
+def to_template(par: Parameterisation, s: np.ndarray, t: np.ndarray, settings: TemplateSettings,
+                warp: AnatomicalWarp) -> tuple[np.ndarray, np.ndarray]:
+    """A bone's (s, t) (its :class:`Parameterisation`) -> the template's, following the anatomy.
+
+    t linearly per region, except on the proximal meridians, bent piecewise linearly so that the
+    tuberosity's height lands at ``[template] tuberosity_share`` of them: the tuberosity sits at one template t
+    whatever the plateau's depth. s by the period, its angle counted from the ankle's own lateral on the
+    distal end and from the frame's lateral on the proximal end, the turn fading linearly along the shaft: the
+    tibia's torsion turns its distal end against its plateau, and the malleolus lies at one template angle."""
     bounds = region_bounds(settings)
     t_template = np.interp(t, [0.0, par.t_distal, par.t_proximal, par.t_end], bounds)
-    turn = ankle_turn_deg / 360.0 * par.s_period * np.interp(t_template, bounds[1:3], [1.0, 0.0])
+    proximal = t > par.t_proximal
+    share = (par.t_end - t[proximal]) / (par.t_end - par.t_proximal)  # 0 at the apex ring
+    q = np.interp(np.mod(s[proximal], par.s_period) * (360.0 / par.s_period), warp.meridian_angle_deg,
+                  warp.tuberosity_share, period=360.0)
+    target = settings.tuberosity_share
+    bent = np.where(share < q, share * (target / q), target + (share - q) * ((1.0 - target) / (1.0 - q)))
+    t_template[proximal] = bounds[3] - bent * (bounds[3] - bounds[2])
+    turn = warp.ankle_turn_deg / 360.0 * par.s_period * np.interp(t_template, bounds[1:3], [1.0, 0.0])
     return np.mod(s - turn, par.s_period) * (settings.s_period_mm / par.s_period), t_template
 
 
@@ -150,26 +193,26 @@ def surface_targets(bone: BoneMesh, frame: AnatomicalFrame, settings: TemplateSe
 
 
 def fit_template(bone: BoneMesh, frame: AnatomicalFrame, contours: ContourSet, settings: TemplateSettings, *,
-                 apex_hole_radius_mm: float, ankle_turn_deg: float) -> TemplateFit:
+                 apex_hole_radius_mm: float, ankle_turn_deg: float, tuberosity_height_mm: float) -> TemplateFit:
     """Fit the template T-mesh to a tibia: skin its contour curves, then fit its surface with parameter
     correction and no refinement (see the module docstring).
 
     contours : the bone's contour curves (``contour_curves`` with the same frame); apex_hole_radius_mm :
-    their apex hole radius; ankle_turn_deg : the direction of its ankle's lateral axis
-    (``anatomy.morphometry.ankle_turn_deg``, see ``to_template``). Raises FitError when the curves cannot be
-    parameterised.
+    their apex hole radius; ankle_turn_deg, tuberosity_height_mm : its ankle's lateral axis and tibial
+    tuberosity (``anatomical_warp``). Raises FitError when the curves cannot be parameterised.
     """
     st = settings
     clock = time.process_time()
     par = parameterisation(contours)
     pts, w = surface_targets(bone, frame, st, apex_hole_radius_mm=apex_hole_radius_mm)
 
+    warp = anatomical_warp(contours, ankle_turn_deg=ankle_turn_deg, tuberosity_height_mm=tuberosity_height_mm)
     data = curve_data(contours, par)
-    s_c, t_c = to_template(par, data.s, data.t, st, ankle_turn_deg=ankle_turn_deg)
+    s_c, t_c = to_template(par, data.s, data.t, st, warp)
     mesh = template_mesh(st)
     ts0 = solve_control_points(_template_blank(st), s_c, t_c, data.points, fairness=st.fairness_weight)
     ring_p, ring_s, ring_t, ring_w = ring_constraints(contours, par, apex_hole_radius_mm)
-    ring_s, ring_t = to_template(par, ring_s, ring_t, st, ankle_turn_deg=ankle_turn_deg)
+    ring_s, ring_t = to_template(par, ring_s, ring_t, st, warp)
 
     s0, t0, _ = initial_parameters(ts0, pts)
     share, within = st.target_share_within_mm
