@@ -29,6 +29,7 @@ NAMES = ("length_mm", "max_length_mm", "plateau_width_mm", "medial_plateau_depth
 # Published adult ranges (README, `measure`: mean +- 2 SD, the union over the cited studies) of the parameters
 # for which a source was found.
 PUBLISHED = {
+    "length_mm": (294.6, 425.0),
     "max_length_mm": (312.0, 482.0),
     "plateau_width_mm": (59.7, 95.4),
     "medial_plateau_depth_mm": (37.7, 61.5),
