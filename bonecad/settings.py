@@ -63,6 +63,29 @@ class MeshSettings:
 
 
 @dataclass(frozen=True)
+class ImagingSettings:
+    """CT segmentation: the automatic surface level (cortical floor HU, its percentile, the soft-tissue window
+    HU, the level's clamp HU), the bodies of the threshold mask (fragment share of the largest body's voxels,
+    long share of the longest length, side-by-side overlap and distance shares), the split of touching bones
+    (erosion depth mm, part shares of voxels and length), the thin-cortex growth (voxels), Taubin smoothing
+    (iterations)."""
+
+    cortical_min_hu: float
+    cortical_percentile: float
+    soft_tissue_hu: tuple[float, float]
+    level_range_hu: tuple[float, float]
+    fragment_voxel_share: float
+    long_length_share: float
+    beside_overlap_share: float
+    beside_distance_share: float
+    split_erode_mm: float
+    split_part_share: float
+    split_length_share: float
+    grow_voxels: int
+    smoothing_iterations: int
+
+
+@dataclass(frozen=True)
 class AnatomySettings:
     """Anatomical frame: articular-surface search (shares of the length), metaphysis flare ratios
     (section area / narrowest shaft area), and region boundaries (mm above the plafond centre;
@@ -287,6 +310,7 @@ class Settings:
 
     units: UnitsSettings
     mesh: MeshSettings
+    imaging: ImagingSettings
     anatomy: AnatomySettings
     morphometry: MorphometrySettings
     femur: FemurSettings
