@@ -82,6 +82,9 @@ class ImagingSettings:
     split_part_share: float
     split_length_share: float
     grow_voxels: int
+    joint_reach_mm: float
+    joint_space_voxels: int
+    joint_gain_hu_per_mm: float
     smoothing_iterations: int
 
 

@@ -201,6 +201,25 @@ def test_the_tibia_does_not_grow_into_a_joint_space_thinner_than_a_voxel():
     assert distance.max() < 0.3  # measured 0.15
 
 
+def test_a_joint_space_thinner_than_a_slice_is_parted_half_way_between_the_bones():
+    """A talus 0.5 mm below the tibia's end at 0.7 x 0.7 x 2.0 mm voxels: one bright band of both cortices,
+    which the neck's watershed gives to the tibia (its end 1.31 mm too low when the contact keeps the
+    watershed's part, ``joint_reach_mm = 0``); the surface runs half-way between the two bones' marrow."""
+    tibia = _capsule(300.0, 14.0, (0.0, 0.0, 0.0))
+    talus = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    talus.apply_translation((0.0, 0.0, -150.0 - 14.0 - 0.5 - 20.0))
+    scene = _scene(tibia, talus)
+    ct = mesh_to_ct(scene.vertices, scene.faces, voxel_mm=(0.7, 0.7, 2.0), noise_hu=20.0, seed=5)
+    samples, _ = trimesh.sample.sample_surface(tibia, 20000, seed=1)
+    end = tibia.vertices[:, 2].min()
+    got = _segment(ct)
+    assert any("separated the talus" in r for r in got.repairs), got.repairs
+    assert end - got.vertices[:, 2].min() < 0.7  # measured 0.63
+    assert TriangleLocator(got.vertices, got.faces).distance(samples).max() < 0.8  # measured 0.64 (0.95 before)
+    kept = _segment(ct, imaging=replace(SETTINGS.imaging, joint_reach_mm=0.0))
+    assert end - kept.vertices[:, 2].min() > 1.0  # measured 1.31
+
+
 def test_no_bone_is_an_input_error():
     hu = np.full((30, 30, 30), SOFT_TISSUE_HU, dtype=np.float32)
     hu[:, :, :3] = AIR_HU

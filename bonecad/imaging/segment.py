@@ -94,11 +94,13 @@ def segment_bone(
         bodies = _bodies(labels, int(labels.max()), offset, volume, settings)
     tibia, fibulae = _pick_tibia(bodies, path, settings)
     separated: tuple[str, ...] = ()
+    at_neck: list[int] = []  # labels of the bones separated at a neck (joints across the tibia's axis)
     for _ in range(2):  # a talus at the ankle, a femur at the knee
         found = _split_at_neck(labels, tibia, offset, volume, settings, mesh_settings)
-        if not found:
+        if found is None:
             break
-        separated += found
+        separated += (found[0],)
+        at_neck.append(found[1])
         bodies = _bodies(labels, int(labels.max()), offset, volume, settings)
         tibia, fibulae = _pick_tibia(bodies, path, settings)
     _check_whole(tibia, offset, volume, path)
@@ -107,6 +109,7 @@ def segment_bone(
     sub = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in tibia.slices)
     own = np.pad(labels[sub] == tibia.label, 2)
     other = np.pad((labels[sub] != tibia.label) & (labels[sub] > 0), 2)
+    jointed = np.pad(np.isin(labels[sub], at_neck), 2)
     del labels
     sub_offset = offset + np.array([s.start for s in sub]) - 2
     field = np.full(own.shape, level - 1000.0, dtype=np.float32)
@@ -130,6 +133,8 @@ def segment_bone(
 
     # Grey values for marching cubes: the interior lifted above the level (marrow
     # filled), everything away from the tibia pushed below it (no fibula).
+    joint = _joint_midway(field, own, jointed, level, volume.spacing_mm[::-1], settings)
+    del jointed
     interior = ndimage.binary_erosion(own)
     field[interior] = np.maximum(field[interior], level + 500.0)
     near = ndimage.binary_dilation(own, iterations=2)
@@ -137,6 +142,8 @@ def segment_bone(
     # Voxels of a touching bone (split off from the tibia) stay outside.
     cut = other & ~own
     field[cut] = np.minimum(field[cut], level - 500.0)
+    if joint is not None:
+        field[joint[0]] = joint[1]
     field[[0, -1], :, :] = field[:, [0, -1], :] = field[:, :, [0, -1]] = level - 1000.0
     del interior, near, own, other, cut
 
@@ -171,6 +178,47 @@ def segment_bone(
         segmented=True,
         extra={"level_hu": level, "voxel_mm": volume.spacing_mm.tolist()},
     )
+
+
+def _joint_midway(field: np.ndarray, own: np.ndarray, other: np.ndarray, level: float, spacing_kji: np.ndarray,
+                  settings: ImagingSettings) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the tibia (``own``, solid) touches a bone separated from it at a neck (``other``: talus, femur):
+    the voxels on both sides of the contact and their grey values capped so the surface runs half-way
+    between the two bones' marrow.
+
+    A joint space thinner than a slice is one bright band of both bones' cortices; the neck's watershed
+    gives the whole band to one side. The joint lies between the two subchondral plates, half-way between
+    the marrow on either side (voxels below the level inside each bone, not within
+    ``settings.joint_space_voxels`` of the other bone): a contact voxel's value is capped at
+    ``level + gain * (distance to the neighbour's marrow - distance to the tibia's)``, so the surface passes
+    where both distances are equal; only where both marrows lie within ``settings.joint_reach_mm`` (a bone
+    without marrow in reach keeps the watershed's part). Not beside the fibula: the tibia's rim over the
+    fibular head is a thin lip without marrow of its own, and half-way between the marrows lies in it (TLEM2
+    at 0.7 x 0.7 x 2.0 mm: worst miss 1.54 -> 1.64 mm). Returns (mask, values) or None.
+    """
+    contact = (own & ndimage.binary_dilation(other)) | (other & ndimage.binary_dilation(own))
+    if not contact.any():
+        return None
+    box = _bounding_box(contact)
+    assert box is not None
+    reach = settings.joint_reach_mm
+    pad = np.ceil(reach / spacing_kji).astype(int) + 1
+    box = tuple(slice(max(s.start - p, 0), min(s.stop + p, n)) for s, p, n in zip(box, pad, own.shape))
+    grey, mine, theirs = field[box], own[box], other[box]
+    low = grey < level
+    # marrow: dark voxels inside a bone, not the joint space the filling closed in beside the other one
+    apart = settings.joint_space_voxels
+    mine_marrow = mine & low & ~ndimage.binary_dilation(theirs, iterations=apart)
+    theirs_marrow = theirs & low & ~ndimage.binary_dilation(mine, iterations=apart)
+    to_mine = ndimage.distance_transform_edt(~mine_marrow, sampling=spacing_kji)
+    to_theirs = ndimage.distance_transform_edt(~theirs_marrow, sampling=spacing_kji)
+    where = contact[box] & (to_mine <= reach) & (to_theirs <= reach)
+    if not where.any():
+        return None
+    mask = np.zeros(own.shape, dtype=bool)
+    mask[box] = where
+    values = np.minimum(grey[where], level + settings.joint_gain_hu_per_mm * (to_theirs[where] - to_mine[where]))
+    return mask, values
 
 
 def _bounding_box(mask: np.ndarray) -> tuple[slice, ...] | None:
@@ -393,9 +441,9 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume:
 
 
 def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume: CTVolume,
-                   settings: ImagingSettings, mesh_settings: MeshSettings) -> tuple[str, ...]:
+                   settings: ImagingSettings, mesh_settings: MeshSettings) -> tuple[str, int] | None:
     """Separate a bone fused to one end of the tibia (talus at the ankle, femur at the knee), in place in
-    ``labels``; returns what was separated (for the bone's repairs), or nothing.
+    ``labels``; returns what was separated (for the bone's repairs) and its new label, or None.
 
     A joint space thinner than a voxel (2 mm slices at the ankle) joins both
     bones in the threshold mask. Walking from each end of the filled body along
@@ -459,8 +507,8 @@ def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume:
                 f"{end_name} end through a joint space the voxels do not resolve (neck {neck_mm:.0f} mm from "
                 "the end)")
         log.info(what)
-        return (what,)
-    return ()
+        return what, new_label
+    return None
 
 
 def _points_down(sign: float, tibia: _Body) -> bool:
