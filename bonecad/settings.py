@@ -83,7 +83,7 @@ class ImagingSettings:
     split_length_share: float
     grow_voxels: int
     joint_reach_mm: float
-    joint_space_voxels: int
+    joint_space_mm: float
     joint_gain_hu_per_mm: float
     smoothing_iterations: int
 

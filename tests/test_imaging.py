@@ -214,10 +214,29 @@ def test_a_joint_space_thinner_than_a_slice_is_parted_half_way_between_the_bones
     end = tibia.vertices[:, 2].min()
     got = _segment(ct)
     assert any("separated the talus" in r for r in got.repairs), got.repairs
-    assert end - got.vertices[:, 2].min() < 0.7  # measured 0.63
-    assert TriangleLocator(got.vertices, got.faces).distance(samples).max() < 0.8  # measured 0.64 (0.95 before)
+    assert end - got.vertices[:, 2].min() < 0.7  # measured 0.53
+    assert TriangleLocator(got.vertices, got.faces).distance(samples).max() < 0.8  # measured 0.70 (0.95 before)
     kept = _segment(ct, imaging=replace(SETTINGS.imaging, joint_reach_mm=0.0))
     assert end - kept.vertices[:, 2].min() > 1.0  # measured 1.31
+
+
+def test_a_joint_space_the_voxels_resolve_is_not_taken_for_marrow():
+    """A talus 0.6 mm below the tibia's end at 0.8 x 0.8 x 1.0 mm: the joint space is dark beside the contact
+    and lies inside the filled bones; taken for marrow (``joint_space_mm = 0``), the half-way rule draws the
+    tibia into the talus (worst miss 1.07 mm); the shipped rule leaves it where the watershed put it."""
+    tibia = _capsule(300.0, 14.0, (0.0, 0.0, 0.0))
+    talus = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    talus.apply_translation((0.0, 0.0, -150.0 - 14.0 - 0.6 - 20.0))
+    scene = _scene(tibia, talus)
+    ct = mesh_to_ct(scene.vertices, scene.faces, voxel_mm=(0.8, 0.8, 1.0), noise_hu=20.0, seed=5)
+    samples, _ = trimesh.sample.sample_surface(tibia, 20000, seed=1)
+
+    def worst(imaging) -> float:
+        got = _segment(ct, imaging=imaging)
+        return float(TriangleLocator(got.vertices, got.faces).distance(samples).max())
+
+    assert worst(SETTINGS.imaging) < 0.6  # measured 0.43
+    assert worst(replace(SETTINGS.imaging, joint_space_mm=0.0)) > 0.9  # measured 1.07
 
 
 def test_no_bone_is_an_input_error():

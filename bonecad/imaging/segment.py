@@ -189,7 +189,7 @@ def _joint_midway(field: np.ndarray, own: np.ndarray, other: np.ndarray, level: 
     A joint space thinner than a slice is one bright band of both bones' cortices; the neck's watershed
     gives the whole band to one side. The joint lies between the two subchondral plates, half-way between
     the marrow on either side (voxels below the level inside each bone, not within
-    ``settings.joint_space_voxels`` of the other bone): a contact voxel's value is capped at
+    ``settings.joint_space_mm`` of the other bone): a contact voxel's value is capped at
     ``level + gain * (distance to the neighbour's marrow - distance to the tibia's)``, so the surface passes
     where both distances are equal; only where both marrows lie within ``settings.joint_reach_mm`` (a bone
     without marrow in reach keeps the watershed's part). Not beside the fibula: the tibia's rim over the
@@ -207,9 +207,9 @@ def _joint_midway(field: np.ndarray, own: np.ndarray, other: np.ndarray, level: 
     grey, mine, theirs = field[box], own[box], other[box]
     low = grey < level
     # marrow: dark voxels inside a bone, not the joint space the filling closed in beside the other one
-    apart = settings.joint_space_voxels
-    mine_marrow = mine & low & ~ndimage.binary_dilation(theirs, iterations=apart)
-    theirs_marrow = theirs & low & ~ndimage.binary_dilation(mine, iterations=apart)
+    apart = settings.joint_space_mm
+    mine_marrow = mine & low & (ndimage.distance_transform_edt(~theirs, sampling=spacing_kji) > apart)
+    theirs_marrow = theirs & low & (ndimage.distance_transform_edt(~mine, sampling=spacing_kji) > apart)
     to_mine = ndimage.distance_transform_edt(~mine_marrow, sampling=spacing_kji)
     to_theirs = ndimage.distance_transform_edt(~theirs_marrow, sampling=spacing_kji)
     where = contact[box] & (to_mine <= reach) & (to_theirs <= reach)
