@@ -201,17 +201,24 @@ def test_the_tibia_does_not_grow_into_a_joint_space_thinner_than_a_voxel():
     assert distance.max() < 0.3  # measured 0.15
 
 
+def _tibia_on_talus(gap_mm: float, voxel_mm: tuple[float, float, float]):
+    """A CT of a tibia (capsule, its end at z = -164 mm) with a talus (ball) ``gap_mm`` below it, and 20,000
+    samples of the tibia's surface."""
+    tibia = _capsule(300.0, 14.0, (0.0, 0.0, 0.0))
+    talus = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    talus.apply_translation((0.0, 0.0, -150.0 - 14.0 - gap_mm - 20.0))
+    scene = _scene(tibia, talus)
+    ct = mesh_to_ct(scene.vertices, scene.faces, voxel_mm=voxel_mm, noise_hu=20.0, seed=5)
+    samples, _ = trimesh.sample.sample_surface(tibia, 20000, seed=1)
+    return ct, samples
+
+
 def test_a_joint_space_thinner_than_a_slice_is_parted_half_way_between_the_bones():
     """A talus 0.5 mm below the tibia's end at 0.7 x 0.7 x 2.0 mm voxels: one bright band of both cortices,
     which the neck's watershed gives to the tibia (its end 1.31 mm too low when the contact keeps the
     watershed's part, ``joint_reach_mm = 0``); the surface runs half-way between the two bones' marrow."""
-    tibia = _capsule(300.0, 14.0, (0.0, 0.0, 0.0))
-    talus = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
-    talus.apply_translation((0.0, 0.0, -150.0 - 14.0 - 0.5 - 20.0))
-    scene = _scene(tibia, talus)
-    ct = mesh_to_ct(scene.vertices, scene.faces, voxel_mm=(0.7, 0.7, 2.0), noise_hu=20.0, seed=5)
-    samples, _ = trimesh.sample.sample_surface(tibia, 20000, seed=1)
-    end = tibia.vertices[:, 2].min()
+    ct, samples = _tibia_on_talus(0.5, (0.7, 0.7, 2.0))
+    end = -164.0  # the true tibia's end, mm
     got = _segment(ct)
     assert any("separated the talus" in r for r in got.repairs), got.repairs
     assert end - got.vertices[:, 2].min() < 0.7  # measured 0.53
@@ -224,12 +231,7 @@ def test_a_joint_space_the_voxels_resolve_is_not_taken_for_marrow():
     """A talus 0.6 mm below the tibia's end at 0.8 x 0.8 x 1.0 mm: the joint space is dark beside the contact
     and lies inside the filled bones; taken for marrow (``joint_space_mm = 0``), the half-way rule draws the
     tibia into the talus (worst miss 1.07 mm); the shipped rule leaves it where the watershed put it."""
-    tibia = _capsule(300.0, 14.0, (0.0, 0.0, 0.0))
-    talus = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
-    talus.apply_translation((0.0, 0.0, -150.0 - 14.0 - 0.6 - 20.0))
-    scene = _scene(tibia, talus)
-    ct = mesh_to_ct(scene.vertices, scene.faces, voxel_mm=(0.8, 0.8, 1.0), noise_hu=20.0, seed=5)
-    samples, _ = trimesh.sample.sample_surface(tibia, 20000, seed=1)
+    ct, samples = _tibia_on_talus(0.6, (0.8, 0.8, 1.0))
 
     def worst(imaging) -> float:
         got = _segment(ct, imaging=imaging)
