@@ -60,6 +60,7 @@ class MeshSettings:
     working_edge_mm: float
     working_density_factor: float
     working_max_deviation_mm: float
+    working_pass_reduction: float
 
 
 @dataclass(frozen=True)
