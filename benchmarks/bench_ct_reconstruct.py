@@ -47,7 +47,7 @@ def main() -> None:
         from_mesh = figures(bone, bone, frame)
         start = time.perf_counter()
         segmented = segment_bone(mesh_to_ct(bone.vertices, bone.faces, voxel_mm=0.5, noise_hu=30.0),
-                                 settings=SETTINGS.mesh)
+                                 settings=SETTINGS.imaging, mesh_settings=SETTINGS.mesh)
         seconds = time.perf_counter() - start
         from_ct = figures(segmented, bone, frame)
         for label, f in (("mesh", from_mesh), ("CT", from_ct)):

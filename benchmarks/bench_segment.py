@@ -72,7 +72,8 @@ def segment_file(path: Path) -> dict:
     volume = read_volume(path)
     t1 = time.perf_counter()
     rss_read = _peak_rss_mb()
-    mesh = segment_bone(volume, settings=Settings.load().mesh)
+    settings = Settings.load()
+    mesh = segment_bone(volume, settings=settings.imaging, mesh_settings=settings.mesh)
     t2 = time.perf_counter()
     return {
         "shape": list(volume.shape),
@@ -106,9 +107,11 @@ def bench_round_trips() -> list[dict]:
 
     from bonecad.imaging.compare import round_trip
 
+    settings = Settings.load()
     rows = []
     for path in sorted(TIBIA_DIR.glob("*.stl")):
-        trip = round_trip(trimesh.load(path), settings=Settings.load().mesh, voxel_mm=VOXEL_MM, noise_hu=30.0)
+        trip = round_trip(trimesh.load(path), settings=settings.imaging, mesh_settings=settings.mesh,
+                          voxel_mm=VOXEL_MM, noise_hu=30.0)
         d = trip.distance
         rows.append(
             {

@@ -60,6 +60,33 @@ class MeshSettings:
     working_edge_mm: float
     working_density_factor: float
     working_max_deviation_mm: float
+    working_pass_reduction: float
+
+
+@dataclass(frozen=True)
+class ImagingSettings:
+    """CT segmentation: the automatic surface level (cortical floor HU, its percentile, the soft-tissue window
+    HU, the level's clamp HU), the bodies of the threshold mask (fragment share of the largest body's voxels,
+    long share of the longest length, side-by-side overlap and distance shares), the split of touching bones
+    (erosion depth mm, part shares of voxels and length), the thin-cortex growth (voxels), Taubin smoothing
+    (iterations)."""
+
+    cortical_min_hu: float
+    cortical_percentile: float
+    soft_tissue_hu: tuple[float, float]
+    level_range_hu: tuple[float, float]
+    fragment_voxel_share: float
+    long_length_share: float
+    beside_overlap_share: float
+    beside_distance_share: float
+    split_erode_mm: float
+    split_part_share: float
+    split_length_share: float
+    grow_voxels: int
+    joint_reach_mm: float
+    joint_space_mm: float
+    joint_gain_hu_per_mm: float
+    smoothing_iterations: int
 
 
 @dataclass(frozen=True)
@@ -291,6 +318,7 @@ class Settings:
 
     units: UnitsSettings
     mesh: MeshSettings
+    imaging: ImagingSettings
     anatomy: AnatomySettings
     morphometry: MorphometrySettings
     femur: FemurSettings

@@ -1,6 +1,8 @@
 """Synthetic CT phantom and bone segmentation: values, LPS/RAS round trips, tibia choice, bad volumes."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -15,6 +17,11 @@ from bonecad.mesh.closest import TriangleLocator
 from tests.defaults import SETTINGS
 
 from .conftest import real_mesh_params
+
+
+def _segment(volume: CTVolume, imaging=SETTINGS.imaging, **options):
+    """``segment_bone`` with the shipped settings (``imaging``: another [imaging] section)."""
+    return segment_bone(volume, settings=imaging, mesh_settings=SETTINGS.mesh, **options)
 
 
 def _long_bone(length=220.0, radius=11.0, centre=(42.0, -27.0, 310.0)) -> trimesh.Trimesh:
@@ -112,7 +119,7 @@ def test_round_trip_lands_on_the_mesh_not_its_mirror(tmp_path, bone, bone_ct, wr
         path = write_nifti(bone_ct, tmp_path / "ct.nii.gz")
     else:
         path = write_dicom_series(bone_ct, tmp_path / "dicom")
-    result = segment_bone(read_volume(path), settings=SETTINGS.mesh).to_trimesh()
+    result = _segment(read_volume(path)).to_trimesh()
     assert result.is_watertight and result.volume > 0
     d = surface_distance(result, bone)
     assert d.rms_mm < 0.15 and d.centroid_shift_mm < 0.1
@@ -122,11 +129,11 @@ def test_round_trip_lands_on_the_mesh_not_its_mirror(tmp_path, bone, bone_ct, wr
 
 
 def test_smoothing_does_not_shrink_and_decimation_keeps_the_shape(bone, bone_ct):
-    raw = segment_bone(bone_ct, smoothing_iterations=0, settings=SETTINGS.mesh).to_trimesh()
-    smooth = segment_bone(bone_ct, settings=SETTINGS.mesh).to_trimesh()
+    raw = _segment(bone_ct, imaging=replace(SETTINGS.imaging, smoothing_iterations=0)).to_trimesh()
+    smooth = _segment(bone_ct).to_trimesh()
     assert smooth.volume == pytest.approx(raw.volume, rel=3e-3)
     assert smooth.volume == pytest.approx(bone.volume, rel=1e-2)
-    small = segment_bone(bone_ct, target_faces=8000, settings=SETTINGS.mesh)
+    small = _segment(bone_ct, target_faces=8000)
     assert small.triangle_count <= 8100 and small.watertight
     assert surface_distance(small.to_trimesh(), bone).rms_mm < 0.2
 
@@ -136,7 +143,7 @@ def test_missing_slices_still_give_the_bone(tmp_path, bone):
     folder = write_dicom_series(ct, tmp_path / "gappy")
     back = read_volume(folder)
     assert back.missing_slices == (100, 101, 150) and back.shape == ct.shape
-    assert surface_distance(segment_bone(back, settings=SETTINGS.mesh).to_trimesh(), bone).rms_mm < 0.2
+    assert surface_distance(_segment(back).to_trimesh(), bone).rms_mm < 0.2
 
 
 def _arrays(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
@@ -145,7 +152,7 @@ def _arrays(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
 
 def _picked(scene: trimesh.Trimesh, voxel_mm: float = 1.5):
     ct = mesh_to_ct(*_arrays(scene), voxel_mm=voxel_mm, noise_hu=20.0, seed=5)
-    return segment_bone(ct, settings=SETTINGS.mesh)
+    return _segment(ct)
 
 
 def test_tibia_is_chosen_beside_its_fibula_and_between_femur_and_talus():
@@ -170,7 +177,7 @@ def test_two_legs_are_refused_with_a_reason():
     left = [_capsule(300.0, 14.0, (-150.0, 0.0, 0.0)), _capsule(290.0, 7.0, (-185.0, 10.0, -8.0))]
     ct = mesh_to_ct(*_arrays(_scene(*right, *left)), voxel_mm=2.0, noise_hu=20.0)
     with pytest.raises(InputError, match="both legs"):
-        segment_bone(ct, settings=SETTINGS.mesh)
+        _segment(ct)
 
 
 def test_a_fibula_touching_the_tibia_is_split_off():
@@ -194,25 +201,66 @@ def test_the_tibia_does_not_grow_into_a_joint_space_thinner_than_a_voxel():
     assert distance.max() < 0.3  # measured 0.15
 
 
+def _tibia_on_talus(gap_mm: float, voxel_mm: tuple[float, float, float]):
+    """A CT of a tibia (capsule, its end at z = -164 mm) with a talus (ball) ``gap_mm`` below it, and 20,000
+    samples of the tibia's surface."""
+    tibia = _capsule(300.0, 14.0, (0.0, 0.0, 0.0))
+    talus = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    talus.apply_translation((0.0, 0.0, -150.0 - 14.0 - gap_mm - 20.0))
+    scene = _scene(tibia, talus)
+    ct = mesh_to_ct(scene.vertices, scene.faces, voxel_mm=voxel_mm, noise_hu=20.0, seed=5)
+    samples, _ = trimesh.sample.sample_surface(tibia, 20000, seed=1)
+    return ct, samples
+
+
+def test_a_joint_space_thinner_than_a_slice_is_parted_half_way_between_the_bones():
+    """A talus 0.5 mm below the tibia's end at 0.7 x 0.7 x 2.0 mm voxels: one bright band of both cortices,
+    which the neck's watershed gives to the tibia (its end 1.31 mm too low when the contact keeps the
+    watershed's part, ``joint_reach_mm = 0``); the surface runs half-way between the two bones' marrow."""
+    ct, samples = _tibia_on_talus(0.5, (0.7, 0.7, 2.0))
+    end = -164.0  # the true tibia's end, mm
+    got = _segment(ct)
+    assert any("separated the talus" in r for r in got.repairs), got.repairs
+    assert end - got.vertices[:, 2].min() < 0.7  # measured 0.53
+    assert TriangleLocator(got.vertices, got.faces).distance(samples).max() < 0.8  # measured 0.70 (0.95 before)
+    kept = _segment(ct, imaging=replace(SETTINGS.imaging, joint_reach_mm=0.0))
+    assert end - kept.vertices[:, 2].min() > 1.0  # measured 1.31
+
+
+def test_a_joint_space_the_voxels_resolve_is_not_taken_for_marrow():
+    """A talus 0.6 mm below the tibia's end at 0.8 x 0.8 x 1.0 mm: the joint space is dark beside the contact
+    and lies inside the filled bones; taken for marrow (``joint_space_mm = 0``), the half-way rule draws the
+    tibia into the talus (worst miss 1.07 mm); the shipped rule leaves it where the watershed put it."""
+    ct, samples = _tibia_on_talus(0.6, (0.8, 0.8, 1.0))
+
+    def worst(imaging) -> float:
+        got = _segment(ct, imaging=imaging)
+        return float(TriangleLocator(got.vertices, got.faces).distance(samples).max())
+
+    assert worst(SETTINGS.imaging) < 0.6  # measured 0.43
+    assert worst(replace(SETTINGS.imaging, joint_space_mm=0.0)) > 0.9  # measured 1.07
+
+
 def test_no_bone_is_an_input_error():
     hu = np.full((30, 30, 30), SOFT_TISSUE_HU, dtype=np.float32)
     hu[:, :, :3] = AIR_HU
     volume = CTVolume(hu=hu, affine=np.eye(4), source="/scans/soft.nii")
     with pytest.raises(InputError, match="no bone found") as info:
-        segment_bone(volume, settings=SETTINGS.mesh)
+        _segment(volume)
     assert info.value.path == "/scans/soft.nii"
 
 
 def test_a_cut_tibia_is_an_input_error(bone_ct):
     cut = CTVolume(hu=bone_ct.hu[:-60], affine=bone_ct.affine, source="/scans/knee_cut.nii")
     with pytest.raises(InputError, match="only part of the tibia.*slice") as info:
-        segment_bone(cut, settings=SETTINGS.mesh)
+        _segment(cut)
     assert info.value.path == "/scans/knee_cut.nii"
 
 
 @pytest.mark.parametrize("path", real_mesh_params())
 def test_real_mesh_round_trip_at_1mm(path):
-    d = round_trip(trimesh.load(path), settings=SETTINGS.mesh, voxel_mm=1.0).distance
+    d = round_trip(trimesh.load(path), settings=SETTINGS.imaging,
+                   mesh_settings=SETTINGS.mesh, voxel_mm=1.0).distance
     # A systematic 0.05 mm offset over a 350 mm bone moves the centroid by up to 1 mm; a mirror by far more.
     assert d.rms_mm < 0.3 and d.centroid_shift_mm < 1.0
 
@@ -221,7 +269,8 @@ def test_real_mesh_round_trip_at_1mm(path):
 @pytest.mark.parametrize("path", [p for p in real_mesh_params() if "TLEM2" in str(p.values[0]) or p.marks][:1])
 def test_real_mesh_round_trip_at_half_mm(path):
     """TLEM2: its fibula touches the tibia (0.17 mm gap), the hardest of the five; about 15 s."""
-    d = round_trip(trimesh.load(path), settings=SETTINGS.mesh, voxel_mm=0.5).distance
+    d = round_trip(trimesh.load(path), settings=SETTINGS.imaging,
+                   mesh_settings=SETTINGS.mesh, voxel_mm=0.5).distance
     assert d.rms_mm < 0.3 and d.centroid_shift_mm < 0.5
 
 
@@ -232,13 +281,13 @@ def test_segmentation_follows_a_sheared_grid(bone, bone_ct):
     tilted = CTVolume(hu=bone_ct.hu, affine=affine, source="tilted")
     moved = bone.copy()
     moved.apply_transform(affine @ np.linalg.inv(bone_ct.affine))
-    d = surface_distance(segment_bone(tilted, settings=SETTINGS.mesh).to_trimesh(), moved)
+    d = surface_distance(_segment(tilted).to_trimesh(), moved)
     assert d.rms_mm < 0.15 and d.centroid_shift_mm < 0.1
 
 
 def test_a_cortex_as_thin_as_a_voxel_still_gives_a_filled_bone(bone):
     ct = mesh_to_ct(bone.vertices, bone.faces, voxel_mm=1.0, cortex_mm=1.0, seed=6)
-    result = segment_bone(ct, settings=SETTINGS.mesh).to_trimesh()
+    result = _segment(ct).to_trimesh()
     assert result.volume == pytest.approx(bone.volume, rel=0.02)  # no marrow cavity left inside
     assert surface_distance(result, bone).rms_mm < 0.2
 
@@ -286,7 +335,7 @@ def test_whole_leg_ct_with_thick_slices_gives_the_tibia_without_its_talus(tlem2_
     from tests.legs import leg_ct
 
     ct = leg_ct(tlem2_leg, (0.7, 0.7, 2.0))
-    got = segment_bone(ct, settings=SETTINGS.mesh)
+    got = _segment(ct)
     assert any("separated the talus" in r for r in got.repairs), got.repairs
     roles = sorted(b.role for b in got.bodies)
     assert roles == ["femur", "fibula", "patella", "talus", "tibia"] and got.bodies[0].role == "tibia"

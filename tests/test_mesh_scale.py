@@ -12,7 +12,7 @@ from bonecad.mesh.intake import prepare_bone
 from bonecad.mesh.sampling import midpoint_subdivision
 from bonecad.mesh.topology import (duplicate_faces, edge_counts, is_closed_and_oriented, merge_duplicate_vertices,
                                    non_manifold_vertices)
-from bonecad.mesh.working import working_triangles
+from bonecad.mesh.working import simplified, working_triangles
 
 from .conftest import REAL_MESHES, TIBIA_DIR
 from .defaults import SETTINGS
@@ -108,6 +108,31 @@ def test_deviation_is_measured_against_the_full_mesh(dense, phantom, phantom_fra
     area = float(dense.face_areas().sum())
     assert deviation.mesh_to_cad.weights.sum() == pytest.approx(area, rel=1e-9)  # samples of the full mesh
     assert TriangleLocator(dense.vertices, dense.faces).distance(deviation.mesh_to_cad.points).max() < 1e-9
+
+
+def test_simplified_in_passes(dense, monkeypatch):
+    """The working copy's simplifier works in passes of at most ``working_pass_reduction`` times fewer triangles
+    each, the last to the count asked; the result is closed and close to the mesh."""
+    import fast_simplification
+
+    asked = []
+    one_pass = fast_simplification.simplify
+
+    def counted(points, triangles, target_count):
+        asked.append((len(triangles), target_count))
+        return one_pass(points, triangles, target_count=target_count)
+
+    monkeypatch.setattr(fast_simplification, "simplify", counted)
+    reduction = SETTINGS.mesh.working_pass_reduction
+    target = dense.triangle_count // 20
+    vertices, faces = simplified(dense.vertices, dense.faces, target, pass_reduction=reduction)
+    assert [t for _, t in asked] == [int(target * reduction**k) for k in (2, 1, 0)]
+    assert all(n <= reduction * t for n, t in asked)
+    assert len(faces) <= target * 1.01 and is_closed_and_oriented(faces)
+    assert TriangleLocator(vertices, faces).distance(dense.vertices).max() < SETTINGS.mesh.working_max_deviation_mm
+    asked.clear()
+    simplified(dense.vertices, dense.faces, target)
+    assert asked == [(dense.triangle_count, target)]  # the 3-D view's: one pass
 
 
 @pytest.mark.skipif(not REAL_MESHES, reason=f"real meshes folder {TIBIA_DIR} is absent")

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bonecad.settings import MeshSettings
+from bonecad.settings import ImagingSettings, MeshSettings
 
 
 @dataclass(frozen=True)
@@ -82,10 +82,10 @@ class RoundTrip:
     segment_seconds: float
 
 
-def round_trip(mesh, *, settings: MeshSettings, voxel_mm: float = 0.5, noise_hu: float = 30.0, seed: int = 0
-               ) -> RoundTrip:
-    """Synthetic CT of trimesh ``mesh`` (``voxel_mm`` mm, ``noise_hu`` HU noise), segmented (``settings``:
-    the [mesh] section), compared with its tibia."""
+def round_trip(mesh, *, settings: ImagingSettings, mesh_settings: MeshSettings, voxel_mm: float = 0.5,
+               noise_hu: float = 30.0, seed: int = 0) -> RoundTrip:
+    """Synthetic CT of trimesh ``mesh`` (``voxel_mm`` mm, ``noise_hu`` HU noise), segmented (``settings``: the
+    [imaging] section, ``mesh_settings`` the [mesh] one), compared with its tibia."""
     import time
 
     from bonecad.imaging.phantom import mesh_to_ct
@@ -94,7 +94,7 @@ def round_trip(mesh, *, settings: MeshSettings, voxel_mm: float = 0.5, noise_hu:
     start = time.perf_counter()
     ct = mesh_to_ct(mesh.vertices, mesh.faces, voxel_mm=voxel_mm, noise_hu=noise_hu, seed=seed)
     middle = time.perf_counter()
-    segmented = segment_bone(ct, settings=settings)
+    segmented = segment_bone(ct, settings=settings, mesh_settings=mesh_settings)
     end = time.perf_counter()
     distance = surface_distance(segmented.to_trimesh(), largest_body(mesh), seed=seed)
     return RoundTrip(distance, segmented, ct.shape, middle - start, end - middle)

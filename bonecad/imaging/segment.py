@@ -19,34 +19,9 @@ from bonecad.errors import InputError
 from bonecad.imaging.volume import CTVolume
 from bonecad.mesh.bodies import BodyShape, body_roles, body_shape, neck_index
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
-from bonecad.settings import MeshSettings
+from bonecad.settings import ImagingSettings, MeshSettings
 
 log = logging.getLogger(__name__)
-
-# Voxels above this are bone for the automatic level's cortical estimate; the
-# surface level is clamped to [_LEVEL_MIN, _LEVEL_MAX] HU.
-_CORTICAL_MIN_HU = 600.0
-_LEVEL_MIN, _LEVEL_MAX = 350.0, 1000.0
-# Bodies below this share of the largest body's volume are fragments (specks,
-# calcifications); long bodies are at least this share of the longest.
-_FRAGMENT_SHARE = 0.02
-_LONG_SHARE = 0.5
-# Two bodies lie side by side when their spans along the limb overlap by this
-# share of the shorter span (the fibula beside the tibia).
-_BESIDE_OVERLAP = 0.5
-# ... and their centroids lie within this share of the longer one's length of
-# each other across the limb (tibia-fibula about 0.1; the other leg 0.4 or more).
-_BESIDE_DISTANCE_SHARE = 0.2
-# Touching bones are split by eroding the filled body up to this depth (mm);
-# a split counts when at least two parts hold this share of the eroded voxels
-# and reach this share of the body's length (the fibula: ~15 % of the volume,
-# ~95 % of the length; knobs cut off by the erosion are short).
-_SPLIT_ERODE_MM = 5.0
-_SPLIT_PART_SHARE = 0.03
-_SPLIT_LENGTH_SHARE = 0.4
-# The tibia's mask grows this many voxels into voxels above half-way between
-# soft tissue and the surface level, to close a thin cortex.
-_GROW_VOXELS = 2
 
 
 @dataclass(frozen=True)
@@ -61,47 +36,50 @@ class _Body:
     shape: BodyShape  # what the intake's anatomy rules read (``bonecad.mesh.bodies``)
 
 
-def surface_level(volume: CTVolume) -> float:
+def surface_level(volume: CTVolume, settings: ImagingSettings) -> float:
     """Automatic bone surface level, HU: half-way between cortical bone and soft tissue."""
-    return _levels(volume)[0]
+    return _levels(volume, settings)[0]
 
 
-def _levels(volume: CTVolume) -> tuple[float, float]:
+def _levels(volume: CTVolume, settings: ImagingSettings) -> tuple[float, float]:
     """(surface level, soft tissue value), HU, estimated from a 1-in-8 sample of the voxels."""
     hu = volume.hu[::2, ::2, ::2]
-    bone = hu[hu > _CORTICAL_MIN_HU]
+    bone = hu[hu > settings.cortical_min_hu]
     if bone.size == 0:
-        raise InputError(f"no bone found: no voxel above {_CORTICAL_MIN_HU:.0f} HU", volume.source or None)
-    cortical = float(np.percentile(bone, 75))
-    soft = hu[(hu > -200) & (hu < 200)]
+        raise InputError(f"no bone found: no voxel above {settings.cortical_min_hu:.0f} HU", volume.source or None)
+    cortical = float(np.percentile(bone, settings.cortical_percentile))
+    low, high = settings.soft_tissue_hu
+    soft = hu[(hu > low) & (hu < high)]
     tissue = float(np.median(soft)) if soft.size else 0.0
-    return float(np.clip(0.5 * (cortical + tissue), _LEVEL_MIN, _LEVEL_MAX)), tissue
+    return float(np.clip(0.5 * (cortical + tissue), *settings.level_range_hu)), tissue
 
 
 def segment_bone(
     volume: CTVolume,
     *,
-    settings: MeshSettings,
+    settings: ImagingSettings,
+    mesh_settings: MeshSettings,
     level_hu: float | None = None,
-    smoothing_iterations: int = 10,
     target_faces: int | None = None,
 ) -> BoneMesh:
     """The tibia's closed outer surface from a CT volume.
 
+    settings : the segmentation's levels, body rules, split of touching
+        bones, growth and smoothing ([imaging])
+    mesh_settings : the bodies' roles by anatomy and the neck rule of fused
+        bones ([mesh] fused_neck_*): a talus or femur joined to the tibia
+        through a joint space the voxels do not resolve is separated along
+        the joint (``_split_at_neck``)
     level_hu : bone surface level, HU (None: half-way between the volume's
-        cortical bone and soft tissue, clamped to 350-1000 HU)
-    smoothing_iterations : Taubin iterations (lambda 0.5, mu -0.53); 0 for none
+        cortical bone and soft tissue, clamped to [imaging] level_range_hu)
     target_faces : decimate to about this many triangles (None: keep all)
-    settings : the neck rule of fused bones ([mesh] fused_neck_*): a talus or
-        femur joined to the tibia through a joint space the voxels do not
-        resolve is separated along the joint (``_split_at_neck``)
 
     Returns a BoneMesh in LPS world mm, normals outward. Raises InputError when
     no bone is found, when the tibia cannot be told apart, or when the tibia
     reaches the border of the volume (the volume holds only part of it).
     """
     path = volume.source or None
-    auto_level, tissue = _levels(volume)
+    auto_level, tissue = _levels(volume, settings)
     level = auto_level if level_hu is None else float(level_hu)
     mask = volume.hu >= level
     box = _bounding_box(mask)
@@ -111,24 +89,27 @@ def segment_bone(
     offset = np.array([s.start for s in box])  # (k, j, i)
     labels, count = ndimage.label(mask)
     del mask
-    bodies = _bodies(labels, count, offset, volume)
-    if _split_touching(labels, count, bodies, offset, volume):
-        bodies = _bodies(labels, int(labels.max()), offset, volume)
-    tibia, fibulae = _pick_tibia(bodies, path)
+    bodies = _bodies(labels, count, offset, volume, settings)
+    if _split_touching(labels, count, bodies, volume, settings):
+        bodies = _bodies(labels, int(labels.max()), offset, volume, settings)
+    tibia, fibulae = _pick_tibia(bodies, path, settings)
     separated: tuple[str, ...] = ()
+    at_neck: list[int] = []  # labels of the bones separated at a neck (joints across the tibia's axis)
     for _ in range(2):  # a talus at the ankle, a femur at the knee
-        found = _split_at_neck(labels, tibia, offset, volume, settings)
-        if not found:
+        found = _split_at_neck(labels, tibia, offset, volume, settings, mesh_settings)
+        if found is None:
             break
-        separated += found
-        bodies = _bodies(labels, int(labels.max()), offset, volume)
-        tibia, fibulae = _pick_tibia(bodies, path)
+        separated += (found[0],)
+        at_neck.append(found[1])
+        bodies = _bodies(labels, int(labels.max()), offset, volume, settings)
+        tibia, fibulae = _pick_tibia(bodies, path, settings)
     _check_whole(tibia, offset, volume, path)
 
     # The tibia's box in the volume, padded by 2 voxels (HU beyond the volume: far below the level).
     sub = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in tibia.slices)
     own = np.pad(labels[sub] == tibia.label, 2)
     other = np.pad((labels[sub] != tibia.label) & (labels[sub] > 0), 2)
+    jointed = np.pad(np.isin(labels[sub], at_neck), 2)
     del labels
     sub_offset = offset + np.array([s.start for s in sub]) - 2
     field = np.full(own.shape, level - 1000.0, dtype=np.float32)
@@ -137,16 +118,14 @@ def segment_bone(
     dest = tuple(slice(c.start - s.start, c.stop - s.start) for c, s in zip(clipped, source))
     field[dest] = volume.hu[clipped]
 
-    # Grow the tibia 2 voxels into voxels above half-way between tissue and the
-    # level (closes a thin, partial-volumed cortex), close, fill the marrow;
-    # never within 2 voxels of a neighbour's (a talus dome separated from the
-    # plafond lies inside the tibia's rim in the slices through the joint; a
-    # joint space thinner than a voxel is bright with both bones' partial
-    # volume: growing into it put the tibia's surface 0.84 mm into a 0.8 mm
-    # gap at 1 mm voxels; TLEM2's whole-leg CT at 0.8 x 0.8 x 1.0 mm, worst
-    # miss 1.91 -> 1.57 mm beside the fibula).
-    weak = (field >= 0.5 * (level + tissue)) & ~ndimage.binary_dilation(other, iterations=_GROW_VOXELS)
-    own |= ndimage.binary_dilation(own, iterations=_GROW_VOXELS, mask=weak)
+    # Grow the tibia into voxels above half-way between tissue and the level
+    # (closes a thin, partial-volumed cortex), close, fill the marrow; never
+    # near a neighbour's voxels (a talus dome separated from the plafond lies
+    # inside the tibia's rim in the slices through the joint; a joint space
+    # thinner than a voxel is bright with both bones' partial volume).
+    grow = settings.grow_voxels
+    weak = (field >= 0.5 * (level + tissue)) & ~ndimage.binary_dilation(other, iterations=grow)
+    own |= ndimage.binary_dilation(own, iterations=grow, mask=weak)
     del weak
     own = ndimage.binary_closing(own, structure=ndimage.generate_binary_structure(3, 1), iterations=1)
     own = _fill_holes(own)
@@ -154,6 +133,8 @@ def segment_bone(
 
     # Grey values for marching cubes: the interior lifted above the level (marrow
     # filled), everything away from the tibia pushed below it (no fibula).
+    joint = _joint_midway(field, own, jointed, level, volume.spacing_mm[::-1], settings)
+    del jointed
     interior = ndimage.binary_erosion(own)
     field[interior] = np.maximum(field[interior], level + 500.0)
     near = ndimage.binary_dilation(own, iterations=2)
@@ -161,16 +142,18 @@ def segment_bone(
     # Voxels of a touching bone (split off from the tibia) stay outside.
     cut = other & ~own
     field[cut] = np.minimum(field[cut], level - 500.0)
+    if joint is not None:
+        field[joint[0]] = joint[1]
     field[[0, -1], :, :] = field[:, [0, -1], :] = field[:, :, [0, -1]] = level - 1000.0
     del interior, near, own, other, cut
 
     mesh = _surface(field, level, sub_offset, volume)
     del field
     mesh = _largest_part(mesh)
-    if smoothing_iterations > 0:
+    if settings.smoothing_iterations > 0:
         import trimesh
 
-        trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=smoothing_iterations)
+        trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=settings.smoothing_iterations)
     if target_faces is not None and len(mesh.faces) > target_faces:
         mesh = _decimate(mesh, target_faces)
     if mesh.volume < 0:
@@ -183,7 +166,7 @@ def segment_bone(
             centroid=b.centroid,
             role=role,
         )
-        for b, role in _named_bodies(bodies, tibia, fibulae, settings)
+        for b, role in _named_bodies(bodies, tibia, fibulae, mesh_settings)
     )
     return BoneMesh(
         vertices=np.asarray(mesh.vertices, dtype=np.float64),
@@ -197,6 +180,47 @@ def segment_bone(
     )
 
 
+def _joint_midway(field: np.ndarray, own: np.ndarray, other: np.ndarray, level: float, spacing_kji: np.ndarray,
+                  settings: ImagingSettings) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the tibia (``own``, solid) touches a bone separated from it at a neck (``other``: talus, femur):
+    the voxels on both sides of the contact and their grey values capped so the surface runs half-way
+    between the two bones' marrow.
+
+    A joint space thinner than a slice is one bright band of both bones' cortices; the neck's watershed
+    gives the whole band to one side. The joint lies between the two subchondral plates, half-way between
+    the marrow on either side (voxels below the level inside each bone, not within
+    ``settings.joint_space_mm`` of the other bone): a contact voxel's value is capped at
+    ``level + gain * (distance to the neighbour's marrow - distance to the tibia's)``, so the surface passes
+    where both distances are equal; only where both marrows lie within ``settings.joint_reach_mm`` (a bone
+    without marrow in reach keeps the watershed's part). Not beside the fibula: the tibia's rim over the
+    fibular head is a thin lip without marrow of its own, and half-way between the marrows lies in it (TLEM2
+    at 0.7 x 0.7 x 2.0 mm: worst miss 1.54 -> 1.64 mm). Returns (mask, values) or None.
+    """
+    contact = (own & ndimage.binary_dilation(other)) | (other & ndimage.binary_dilation(own))
+    if not contact.any():
+        return None
+    box = _bounding_box(contact)
+    assert box is not None
+    reach = settings.joint_reach_mm
+    pad = np.ceil(reach / spacing_kji).astype(int) + 1
+    box = tuple(slice(max(s.start - p, 0), min(s.stop + p, n)) for s, p, n in zip(box, pad, own.shape))
+    grey, mine, theirs = field[box], own[box], other[box]
+    low = grey < level
+    # marrow: dark voxels inside a bone, not the joint space the filling closed in beside the other one
+    apart = settings.joint_space_mm
+    mine_marrow = mine & low & (ndimage.distance_transform_edt(~theirs, sampling=spacing_kji) > apart)
+    theirs_marrow = theirs & low & (ndimage.distance_transform_edt(~mine, sampling=spacing_kji) > apart)
+    to_mine = ndimage.distance_transform_edt(~mine_marrow, sampling=spacing_kji)
+    to_theirs = ndimage.distance_transform_edt(~theirs_marrow, sampling=spacing_kji)
+    where = contact[box] & (to_mine <= reach) & (to_theirs <= reach)
+    if not where.any():
+        return None
+    mask = np.zeros(own.shape, dtype=bool)
+    mask[box] = where
+    values = np.minimum(grey[where], level + settings.joint_gain_hu_per_mm * (to_theirs[where] - to_mine[where]))
+    return mask, values
+
+
 def _bounding_box(mask: np.ndarray) -> tuple[slice, ...] | None:
     spans = []
     for axis in range(3):
@@ -208,14 +232,15 @@ def _bounding_box(mask: np.ndarray) -> tuple[slice, ...] | None:
     return tuple(spans)
 
 
-def _bodies(labels: np.ndarray, count: int, offset: np.ndarray, volume: CTVolume) -> list[_Body]:
+def _bodies(labels: np.ndarray, count: int, offset: np.ndarray, volume: CTVolume, settings: ImagingSettings
+            ) -> list[_Body]:
     """Size, centroid, principal axis and length (mm) of each labelled body above the fragment share."""
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
     sizes[0] = 0
     if count == 0:
         return []
     voxel_mm3 = abs(np.linalg.det(volume.affine[:3, :3]))
-    keep = np.flatnonzero(sizes >= _FRAGMENT_SHARE * sizes.max())
+    keep = np.flatnonzero(sizes >= settings.fragment_voxel_share * sizes.max())
     boxes = ndimage.find_objects(labels)
     bodies = []
     for label in keep:
@@ -241,10 +266,10 @@ def _bodies(labels: np.ndarray, count: int, offset: np.ndarray, volume: CTVolume
     return bodies
 
 
-def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, frozenset[int]]:
+def _pick_tibia(bodies: list[_Body], path: object, settings: ImagingSettings) -> tuple[_Body, frozenset[int]]:
     """The tibia among the bodies, and the labels of the fibulae found beside a long bone.
 
-    Long bodies are those at least half as long as the longest. A long body
+    Long bodies are those at least ``settings.long_length_share`` as long as the longest. A long body
     lying beside a bulkier one (spans along the limb overlapping, centroids
     close across it) is a fibula.
     Of the remaining long bones in series (femur, tibia), the tibia is the one
@@ -272,10 +297,10 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, frozenset[int
         return float(np.linalg.norm(gap - (gap @ limb) * limb))
 
     def beside(a: _Body, b: _Body) -> bool:
-        return (overlap(a, b) >= _BESIDE_OVERLAP
-                and apart(a, b) <= _BESIDE_DISTANCE_SHARE * max(a.length_mm, b.length_mm))
+        return (overlap(a, b) >= settings.beside_overlap_share
+                and apart(a, b) <= settings.beside_distance_share * max(a.length_mm, b.length_mm))
 
-    long = [b for b in bodies if b.length_mm >= _LONG_SHARE * longest]
+    long = [b for b in bodies if b.length_mm >= settings.long_length_share * longest]
     fibulae = {}
     for b in long:
         hosts = [a for a in long if a is not b and a.volume_mm3 > b.volume_mm3 and beside(a, b)]
@@ -291,7 +316,8 @@ def _pick_tibia(bodies: list[_Body], path: object) -> tuple[_Body, frozenset[int
         between = []
         for b in candidates:
             lo, hi = span(b)
-            others = [(o.centroid @ limb) for o in bodies if o is not b and overlap(o, b) < _BESIDE_OVERLAP]
+            others = [(o.centroid @ limb) for o in bodies
+                      if o is not b and overlap(o, b) < settings.beside_overlap_share]
             if any(c < lo for c in others) and any(c > hi for c in others):
                 between.append(b)
         if len(between) == 1:
@@ -358,11 +384,11 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
     return ~np.isin(background, outside_labels) | mask
 
 
-def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], offset: np.ndarray, volume: CTVolume
-                    ) -> bool:
+def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], volume: CTVolume,
+                    settings: ImagingSettings) -> bool:
     """Split long bodies that are two bones touching (tibia and fibula at a joint), in place in ``labels``.
 
-    The filled body is eroded on a grid of about 1 mm, up to _SPLIT_ERODE_MM;
+    The filled body is eroded on a grid of about 1 mm, up to ``settings.split_erode_mm``;
     if it falls into two or more long parts, every voxel of the filled body
     goes to the nearest part. Returns whether any body was split.
     """
@@ -373,7 +399,7 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], offset:
     factors = np.maximum(1, np.round(1.0 / spacing_kji)).astype(int)  # per array axis: blocks of about 1 mm
     split_any = False
     for body in bodies:
-        if body.length_mm < _LONG_SHARE * longest:
+        if body.length_mm < settings.long_length_share * longest:
             continue
         region = labels[body.slices]
         own = region == body.label
@@ -382,15 +408,15 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], offset:
         # Erosion by r mm: the coarse voxels deeper than r (exact Euclidean depth on an anisotropic grid).
         depth = ndimage.distance_transform_edt(coarse, sampling=factors * spacing_kji)
         parts = None
-        for r in np.arange(1.0, _SPLIT_ERODE_MM + 0.5, 1.0):
+        for r in np.arange(1.0, settings.split_erode_mm + 0.5, 1.0):
             found, n = ndimage.label(depth > r)
             if n < 2:
                 continue
             sizes = np.bincount(found.ravel())[1:]
             keep = [
                 lab + 1
-                for lab in np.flatnonzero(sizes >= _SPLIT_PART_SHARE * sizes.sum())
-                if _part_length(found == lab + 1, factors, body, volume) >= _SPLIT_LENGTH_SHARE * body.length_mm
+                for lab in np.flatnonzero(sizes >= settings.split_part_share * sizes.sum())
+                if _part_length(found == lab + 1, factors, body, volume) >= settings.split_length_share * body.length_mm
             ]
             if len(keep) >= 2:
                 parts = np.where(np.isin(found, keep), found, 0)
@@ -415,13 +441,13 @@ def _split_touching(labels: np.ndarray, count: int, bodies: list[_Body], offset:
 
 
 def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume: CTVolume,
-                   settings: MeshSettings) -> tuple[str, ...]:
+                   settings: ImagingSettings, mesh_settings: MeshSettings) -> tuple[str, int] | None:
     """Separate a bone fused to one end of the tibia (talus at the ankle, femur at the knee), in place in
-    ``labels``; returns what was separated (for the bone's repairs), or nothing.
+    ``labels``; returns what was separated (for the bone's repairs) and its new label, or None.
 
     A joint space thinner than a voxel (2 mm slices at the ankle) joins both
     bones in the threshold mask. Walking from each end of the filled body along
-    its axis, the cross-section areas (``settings.fused_neck_*``) fall to a neck
+    its axis, the cross-section areas (``mesh_settings.fused_neck_*``) fall to a neck
     at the joint and rise again. A marker-controlled watershed of the depth
     below the body's surface then parts the two where the depth has its saddle,
     in the neck: one marker is the tibia beyond the neck's reach, the other the
@@ -444,13 +470,13 @@ def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume:
     along = float(spacing_kji[_array_axis_along(tibia.axis, volume)])
     step = along * max(1, int(3.0 / along))
     voxel_mm3 = abs(float(np.linalg.det(volume.affine[:3, :3])))
-    zone = settings.fused_neck_zone_share * (high - low)
+    zone = mesh_settings.fused_neck_zone_share * (high - low)
     for end, sign in ((low, 1.0), (high, -1.0)):
         depth = sign * (heights - end)  # mm from this end, inwards
         bins = np.floor(depth / step).astype(np.int64)
         inside = depth < zone
         areas = np.bincount(bins[inside], minlength=int(zone // step) + 1) * voxel_mm3 / step
-        k = neck_index(areas, settings.fused_neck_ratio)
+        k = neck_index(areas, mesh_settings.fused_neck_ratio)
         if k is None:
             continue
         neck_mm = (k + 0.5) * step
@@ -470,7 +496,7 @@ def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume:
         markers[tuple(kji[near].T)] = 1
         second = watershed(-distance, markers, mask=filled) == 2
         share = float(second.sum()) / float(filled.sum())
-        if share < _FRAGMENT_SHARE:
+        if share < settings.fragment_voxel_share:
             continue
         target = filled & ((region == 0) | own)
         new_label = int(labels.max()) + 1
@@ -481,8 +507,8 @@ def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume:
                 f"{end_name} end through a joint space the voxels do not resolve (neck {neck_mm:.0f} mm from "
                 "the end)")
         log.info(what)
-        return (what,)
-    return ()
+        return what, new_label
+    return None
 
 
 def _points_down(sign: float, tibia: _Body) -> bool:

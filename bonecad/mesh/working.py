@@ -4,7 +4,8 @@ A mesh whose triangles are far smaller than the tolerance asks for (0.3 mm CT,
 subdivided exports) carries no more shape, but every stage that reads it pays
 for each triangle. Such a mesh gets a copy simplified by quadric edge collapse
 (Garland & Heckbert 1997, in the Fast-Quadric-Mesh-Simplification library
-through ``fast_simplification``) to triangles of about ``working_edge_mm``;
+through ``fast_simplification``) to triangles of about ``working_edge_mm``, in
+passes of at most ``working_pass_reduction`` times fewer triangles each;
 the largest distance of the full mesh's vertices from the copy is measured
 on every run and held below ``working_max_deviation_mm`` (the copy gets more
 triangles otherwise). The deviation of the models is measured against the full mesh.
@@ -43,21 +44,29 @@ def working_triangles(vertices: np.ndarray, faces: np.ndarray, settings: MeshSet
     return target if len(faces) > settings.working_density_factor * target else None
 
 
-def simplified(vertices: np.ndarray, faces: np.ndarray, triangles: int) -> tuple[np.ndarray, np.ndarray]:
+def simplified(vertices: np.ndarray, faces: np.ndarray, triangles: int, *, pass_reduction: float | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The mesh simplified by quadric edge collapse to about ``triangles`` triangles (vertices mm, faces).
 
+    pass_reduction : simplify in passes, each to at most this many times fewer triangles than the
+        next (the last to ``triangles``); None: in one pass.
     An edge collapse can leave two faces on the same three vertices (a fin of
-    no volume, one in a million): both are dropped, with the vertices no face uses.
+    no volume, one in a million): both are dropped after each pass, with the vertices no face uses.
     """
     import fast_simplification
 
-    points, kept = fast_simplification.simplify(np.ascontiguousarray(vertices, dtype=np.float64),
-                                                np.ascontiguousarray(faces, dtype=np.int64), target_count=triangles)
-    first = first_of_equal_rows(np.sort(kept, axis=1))
-    kept = kept[np.bincount(first, minlength=len(kept))[first] == 1]
-    used = np.zeros(len(points), dtype=bool)
-    used[kept] = True
-    return np.asarray(points[used], dtype=np.float64), (np.cumsum(used) - 1)[kept].astype(np.int64)
+    targets = [int(triangles)]
+    while pass_reduction is not None and targets[-1] * pass_reduction < len(faces):
+        targets.append(int(targets[-1] * pass_reduction))
+    for target in reversed(targets):
+        points, kept = fast_simplification.simplify(np.ascontiguousarray(vertices, dtype=np.float64),
+                                                    np.ascontiguousarray(faces, dtype=np.int64), target_count=target)
+        first = first_of_equal_rows(np.sort(kept, axis=1))
+        kept = kept[np.bincount(first, minlength=len(kept))[first] == 1]
+        used = np.zeros(len(points), dtype=bool)
+        used[kept] = True
+        vertices, faces = np.asarray(points[used], dtype=np.float64), (np.cumsum(used) - 1)[kept].astype(np.int64)
+    return vertices, faces
 
 
 def with_working_copy(bone: BoneMesh, settings: MeshSettings) -> BoneMesh:
@@ -68,7 +77,8 @@ def with_working_copy(bone: BoneMesh, settings: MeshSettings) -> BoneMesh:
     """
     target = working_triangles(bone.vertices, bone.faces, settings)
     while target is not None:
-        vertices, faces = simplified(bone.vertices, bone.faces, target)
+        vertices, faces = simplified(bone.vertices, bone.faces, target,
+                                     pass_reduction=settings.working_pass_reduction)
         closed = is_closed_and_oriented(faces)
         worst = float(TriangleLocator(vertices, faces).distance(bone.vertices).max()) if closed else np.inf
         if worst <= settings.working_max_deviation_mm:

@@ -261,6 +261,7 @@ class Fork:
         self._children.append(child)  # owned before it exists: whatever happens next, it is stopped
         self._forking = True
         try:
+            release_free_heap()  # what the child inherits is what this process uses
             child.start()
         finally:
             self._forking = False
@@ -281,6 +282,18 @@ class Fork:
         log.debug("children stopped in %.2f s", time.perf_counter() - started)
         if exc_type is ChildFailed:
             raise failed or RuntimeError("a background job failed without saying why") from None
+
+
+def release_free_heap() -> bool:
+    """Give the heap memory this process has freed back to the system (glibc's ``malloc_trim``); False where
+    the C library has none. glibc keeps freed blocks below its mmap threshold for reuse: after the intake of
+    TLEM2 split 16-fold (1.4 M triangles) 135 MB of 713 MB resident were such blocks."""
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except AttributeError:
+        return False
+    trim(ctypes.c_size_t(0))
+    return True
 
 
 def executor_for(background: bool) -> Executor:

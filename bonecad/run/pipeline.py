@@ -137,7 +137,8 @@ def segment_ct(path: str | Path, settings: Settings) -> BoneMesh:
     log.info("reading CT volume %s", path)
     volume = read_volume(path)
     log.info("segmenting bone (%d x %d x %d voxels)", *volume.hu.shape[::-1])
-    bone = with_working_copy(segment_bone(volume, settings=settings.mesh), settings.mesh)
+    segmented = segment_bone(volume, settings=settings.imaging, mesh_settings=settings.mesh)
+    bone = with_working_copy(segmented, settings.mesh)
     for repair in bone.repairs:
         log.info("%s", repair)
     lo, hi = settings.units.tibia_length_mm
