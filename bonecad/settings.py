@@ -69,8 +69,9 @@ class ImagingSettings:
     HU, the level's clamp HU), the bodies of the threshold mask (fragment share of the largest body's voxels,
     long share of the longest length, side-by-side overlap and distance shares), the split of touching bones
     (erosion depth mm, part shares of voxels and length), the thin-cortex growth (voxels), Taubin smoothing
-    (iterations)."""
+    (iterations), and the working voxel (mm) finer scans are averaged up to."""
 
+    working_voxel_mm: float
     cortical_min_hu: float
     cortical_percentile: float
     soft_tissue_hu: tuple[float, float]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy import ndimage
@@ -79,6 +80,8 @@ def segment_bone(
     reaches the border of the volume (the volume holds only part of it).
     """
     path = volume.source or None
+    scan_voxel_mm = volume.spacing_mm
+    volume = working_grid(volume, settings)
     auto_level, tissue = _levels(volume, settings)
     level = auto_level if level_hu is None else float(level_hu)
     mask = volume.hu >= level
@@ -166,7 +169,7 @@ def segment_bone(
             centroid=b.centroid,
             role=role,
         )
-        for b, role in _named_bodies(bodies, tibia, fibulae, mesh_settings)
+        for b, role in _named_bodies(bodies, tibia, fibulae, mesh_settings, offset, volume.shape)
     )
     return BoneMesh(
         vertices=np.asarray(mesh.vertices, dtype=np.float64),
@@ -176,7 +179,7 @@ def segment_bone(
         repairs=separated,
         watertight=bool(mesh.is_watertight),
         segmented=True,
-        extra={"level_hu": level, "voxel_mm": volume.spacing_mm.tolist()},
+        extra={"level_hu": level, "voxel_mm": volume.spacing_mm.tolist(), "scan_voxel_mm": scan_voxel_mm.tolist()},
     )
 
 
@@ -219,6 +222,25 @@ def _joint_midway(field: np.ndarray, own: np.ndarray, other: np.ndarray, level: 
     mask[box] = where
     values = np.minimum(grey[where], level + settings.joint_gain_hu_per_mm * (to_theirs[where] - to_mine[where]))
     return mask, values
+
+
+def working_grid(volume: CTVolume, settings: ImagingSettings) -> CTVolume:
+    """``volume`` averaged over blocks of whole voxels, per axis the most whose edge stays within ``[imaging]
+    working_voxel_mm``; ``volume`` itself where no axis has two voxels in that length. The mean keeps the
+    surface's sub-voxel position (its partial volume) and lowers the noise, and the segmentation's cost falls
+    with the blocks' volume."""
+    factors = np.maximum(1, np.floor(settings.working_voxel_mm / volume.spacing_mm[::-1] + 1e-6)).astype(int)
+    if np.all(factors == 1):
+        return volume
+    hu = _block_mean(volume.hu, factors, pad="edge")
+    f_ijk = factors[::-1]
+    affine = volume.affine.copy()
+    affine[:3, :3] = volume.affine[:3, :3] * f_ijk
+    affine[:3, 3] = volume.index_to_world(0.5 * (f_ijk - 1.0)[None])[0]  # the first block's centre
+    log.info("segmenting on blocks of %d x %d x %d voxels (%.2f x %.2f x %.2f mm)",
+             *f_ijk, *(volume.spacing_mm * f_ijk))
+    missing = tuple(sorted({k // int(factors[0]) for k in volume.missing_slices}))
+    return CTVolume(hu=hu, affine=affine, source=volume.source, missing_slices=missing)
 
 
 def _bounding_box(mask: np.ndarray) -> tuple[slice, ...] | None:
@@ -331,15 +353,27 @@ def _pick_tibia(bodies: list[_Body], path: object, settings: ImagingSettings) ->
     return candidates[0], frozenset(fibulae)
 
 
-def _named_bodies(bodies: list[_Body], tibia: _Body, fibulae: frozenset[int], settings: MeshSettings
-                  ) -> list[tuple[_Body, str]]:
+def _named_bodies(bodies: list[_Body], tibia: _Body, fibulae: frozenset[int], settings: MeshSettings,
+                  offset: np.ndarray, shape: tuple[int, ...]) -> list[tuple[_Body, str]]:
     """Every body with its role by anatomy (``bonecad.mesh.bodies.body_roles``, as a mesh's intake names
     them: femur, patella, talus, ...), the tibia first (the kept body, as in a mesh's intake). A fibula
     ``_pick_tibia`` found beside the tibia stays a fibula. The tibia's plateau end is the superior one (LPS z)."""
     ordered = [tibia, *(b for b in bodies if b is not tibia)]
     up = tibia.axis if tibia.axis[2] > 0 else -tibia.axis
     named = body_roles([b.shape for b in ordered], 0, up, settings)
-    return [(b, "fibula" if b.label in fibulae else role) for b, role in zip(ordered, named)]
+    return [(b, "fibula" if b.label in fibulae else _cut_femur(b, role, tibia, up, offset, shape))
+            for b, role in zip(ordered, named)]
+
+
+def _cut_femur(body: _Body, role: str, tibia: _Body, up: np.ndarray, offset: np.ndarray, shape: tuple[int, ...]
+               ) -> str:
+    """``role``, or "femur" for a "broken piece" beyond the plateau that the volume's border cuts: the end of a
+    femur in a knee-to-ankle field of view (the tibia itself is whole: ``_check_whole``), not a piece of the
+    tibia."""
+    if role != "broken piece" or float((body.centroid - tibia.centroid) @ up) <= 0.0:
+        return role
+    at_border = any(s.start + o == 0 or s.stop + o == n for s, o, n in zip(body.slices, offset, shape))
+    return "femur" if at_border else role
 
 
 def _check_whole(tibia: _Body, offset: np.ndarray, volume: CTVolume, path: object) -> None:
@@ -516,15 +550,25 @@ def _points_down(sign: float, tibia: _Body) -> bool:
     return (sign > 0) == (tibia.axis[2] > 0)
 
 
-def _block_mean(mask: np.ndarray, factors: np.ndarray) -> np.ndarray:
-    """Mean of ``mask`` over blocks of ``factors`` voxels per array axis (padded with False to a multiple)."""
+def _block_mean(values: np.ndarray, factors: np.ndarray, *, pad: Literal["constant", "edge"] = "constant"
+                ) -> np.ndarray:
+    """float32 mean of ``values`` over blocks of ``factors`` voxels per array axis, the array padded to a
+    multiple of them with ``pad`` (numpy's mode: "constant", False or 0; "edge", the last slice repeated)."""
     if np.all(factors == 1):
-        return mask.astype(np.float32)
-    padded = np.pad(mask, [(0, (-n) % f) for n, f in zip(mask.shape, factors)])
-    shape = []
-    for n, f in zip(padded.shape, factors):
-        shape += [n // f, f]
-    return padded.reshape(shape).mean(axis=(1, 3, 5), dtype=np.float32)
+        return values.astype(np.float32)
+    widths = [(0, (-n) % f) for n, f in zip(values.shape, factors)]
+    padded = np.pad(values, widths, mode=pad) if any(w for _, w in widths) else values
+    total = padded
+    for axis, f in enumerate(factors):  # strided sums, one axis at a time: no (n, f, ...) temporaries
+        if f > 1:
+            index: list[slice] = [slice(None)] * total.ndim
+            index[axis] = slice(0, None, f)
+            acc = total[tuple(index)].astype(np.float32)
+            for r in range(1, f):
+                index[axis] = slice(r, None, f)
+                acc += total[tuple(index)]
+            total = acc
+    return total * np.float32(1.0 / np.prod(factors))
 
 
 def _part_length(part: np.ndarray, factors: np.ndarray, body: _Body, volume: CTVolume) -> float:

@@ -88,6 +88,10 @@ class BoneMesh:
                 for b in self.bodies
             ],
             "repairs": list(self.repairs),
+            **({"segmentation_level_hu": round(float(self.extra["level_hu"]), 1),
+                "segmented_on_voxels_mm": " x ".join(f"{v:.2f}" for v in self.extra["voxel_mm"]),
+                "scan_voxels_mm": " x ".join(f"{v:.2f}" for v in self.extra["scan_voxel_mm"])}
+               if self.segmented else {}),
             **({"working_copy": {"triangles": self.working.triangle_count, **self.working.extra}}
                if self.working is not None else {}),
         }
