@@ -45,8 +45,9 @@ UNSOURCED = {
     "plafond_depth_mm": _NO_SOURCE,
     "bimalleolar_width_mm": _NO_SOURCE + " (the distal epiphyseal breadth: means only, 10-19 mm below the real "
                             "tibias)",
-    **{f"shaft_{d}_{p}_mm": _NO_SOURCE + " (csg-dataset: its data files not readable here, and it holds areas "
-       "and second moments, not extents)" for d in ("ml", "ap") for p in (20, 35, 50, 65, 80)},
+    **{f"shaft_{d}_{p}_mm": _NO_SOURCE + " (csg-dataset: its data files are not readable here; its properties "
+       "are areas and second moments, the extents would come from its polygons)"
+       for d in ("ml", "ap") for p in (20, 35, 50, 65, 80)},
 }
 
 #: issue 21: 1 mm for lengths, 1 degree for angles
