@@ -122,18 +122,13 @@ def landmark_spreads(varied_fits) -> dict[str, float]:
     return spreads | {label: max(misses) for label, misses in ring_misses.items()}
 
 
-@pytest.mark.parametrize("label", ["plafond centre", "plateau centre", "medial malleolus tip"])
+@pytest.mark.parametrize("label", ["plafond centre", "plateau centre", "medial malleolus tip", "tibial tuberosity"])
 def test_landmarks_map_to_one_template_place(landmark_spreads, label):
-    """On the 20 varied phantoms (torsion 0-40 degrees) each landmark maps to template points within 3 mm."""
+    """On the 20 varied phantoms (torsion 0-40 degrees) each landmark maps to template points within 3 mm.
+    Measured: plateau centre 0.85 mm, tibial tuberosity 1.45 mm, medial malleolus tip 1.74 mm, plafond centre
+    2.24 mm (the tuberosity 5.4 mm while a small phantom tuberosity could sink into the metaphysis: see
+    ``phantom_tibia._tuberosity_centre_y``)."""
     assert landmark_spreads[label] < 3.0, landmark_spreads
-
-
-@pytest.mark.xfail(strict=True, reason=(
-    "5.4 mm: on one phantom (varied17, its tuberosity 7.2 mm prominent) the finder (morphometry.tibial_tuberosity) "
-    "lands on the anterior crest, about 10 degrees medial of the bump; the other 19 lie within 1.8 mm of the "
-    "centroid"))
-def test_tuberosity_maps_to_one_template_place(landmark_spreads):
-    assert landmark_spreads["tibial tuberosity"] < 3.0, landmark_spreads
 
 
 def test_generalisation_with_five_modes_below_half_mm(model_dir):

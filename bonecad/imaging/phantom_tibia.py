@@ -8,6 +8,7 @@ parameters are the ones a surgeon measures on an X-ray or CT.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -57,10 +58,53 @@ def _smooth_min(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
 
 def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> np.ndarray:
     """Approximate signed distance (mm, negative inside) of the phantom at bone coordinates."""
+    x, y = _twisted(x, y, z, p)
+    body = _untwisted_body(x, y, z, p)
+    # Tibial tuberosity: an ellipsoid on the anterior proximal shaft, its centre as deep below the body's own
+    # anterior surface as the default phantom's (``_tuberosity_centre_y``).
+    tz = p.length_mm - 0.11 * p.length_mm
+    tub = np.sqrt(((x - 0.1 * p.plateau_width_mm) / 14.0) ** 2
+                  + ((y - _tuberosity_centre_y(p)) / p.tuberosity_height_mm) ** 2
+                  + ((z - tz) / 22.0) ** 2) - 1.0
+    body = _smooth_min(body, tub * 10.0, 4.0)
+    # Medial malleolus: medial (-x for a right tibia), reaching below the plafond.
+    mal = np.sqrt(((x + 0.5 * p.distal_width_mm - 7.0) / 8.0) ** 2 + ((y - 2.0) / 11.0) ** 2
+                  + ((z - 4.0) / (p.malleolus_length_mm + 4.0)) ** 2) - 1.0
+    return _smooth_min(body, mal * 9.0, 4.0)
+
+
+@functools.lru_cache(maxsize=256)
+def _tuberosity_centre_y(p: TibiaParameters) -> float:
+    """y (mm) of the tuberosity ellipsoid's centre: the default phantom's (half the shaft depth plus a fifth of
+    the tuberosity's height), moved with the body's anterior surface under the tuberosity. Placed by the shaft
+    depth alone, the ellipsoid of a phantom with a deep plateau or a small tuberosity sank into the
+    metaphysis: 7.2 mm high, it stood 0.4 mm proud (the default's 9 mm: 5.2 mm)."""
+    default = TibiaParameters()
+    return (_anterior_surface_y(p) - _anterior_surface_y(default) + 0.5 * default.shaft_depth_mm
+            + 0.2 * p.tuberosity_height_mm)
+
+
+def _anterior_surface_y(p: TibiaParameters) -> float:
+    """y (mm) where the body without tuberosity and malleolus (``_body_field``) is crossed outwards along +y
+    at the tuberosity's x and height."""
+    start = np.array([[0.1 * p.plateau_width_mm, 0.0, p.length_mm - 0.11 * p.length_mm]])
+    return float(start[0, 1] + _first_exit(p, start, np.array([[0.0, 1.0, 0.0]]), 80.0, field=_body_field)[0])
+
+
+def _twisted(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> tuple[np.ndarray, np.ndarray]:
+    """Torsion: the distal sections turn clockwise seen from above (external) by up to torsion_deg."""
+    twist = np.radians(p.torsion_deg) * _smoothstep((0.70 * p.length_mm - z) / (0.54 * p.length_mm))
+    return x * np.cos(twist) - y * np.sin(twist), x * np.sin(twist) + y * np.cos(twist)
+
+
+def _body_field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> np.ndarray:
+    """``_field`` without the tuberosity and the malleolus: shaft, metaphyses, plateau and plafond."""
+    return _untwisted_body(*_twisted(x, y, z, p), z, p)
+
+
+def _untwisted_body(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> np.ndarray:
+    """``_body_field`` in the twisted coordinates (``_twisted``)."""
     L = p.length_mm
-    # Torsion: the distal sections turn clockwise seen from above (external) by up to torsion_deg.
-    twist = np.radians(p.torsion_deg) * _smoothstep((0.70 * L - z) / (0.54 * L))
-    x, y = x * np.cos(twist) - y * np.sin(twist), x * np.sin(twist) + y * np.cos(twist)
     top = _smoothstep((z - 0.70 * L) / (0.26 * L))  # 0 in the shaft, 1 at the plateau
     bottom = _smoothstep((0.16 * L - z) / (0.14 * L))  # 1 at the plafond
     half_w = 0.5 * (p.shaft_width_mm + top * (p.plateau_width_mm - p.shaft_width_mm)
@@ -91,18 +135,7 @@ def _field(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: TibiaParameters) -> n
     )
     bottom_surface = _PLAFOND_DOME_MM * np.exp(-((x / (0.25 * p.distal_width_mm)) ** 2)
                                                - ((y / (0.25 * p.distal_depth_mm)) ** 2))
-    body = -_smooth_min(-body, -np.maximum(z - top, bottom_surface - z), 3.0)
-    # Tibial tuberosity: an ellipsoid on the anterior proximal shaft.
-    tz = L - 0.11 * L
-    tub = np.sqrt(((x - 0.1 * p.plateau_width_mm) / 14.0) ** 2
-                  + ((y - (0.5 * p.shaft_depth_mm + 0.2 * p.tuberosity_height_mm)) / p.tuberosity_height_mm) ** 2
-                  + ((z - tz) / 22.0) ** 2) - 1.0
-    body = _smooth_min(body, tub * 10.0, 4.0)
-    # Medial malleolus: medial (-x for a right tibia), reaching below the plafond.
-    mal = np.sqrt(((x + 0.5 * p.distal_width_mm - 7.0) / 8.0) ** 2 + ((y - 2.0) / 11.0) ** 2
-                  + ((z - 4.0) / (p.malleolus_length_mm + 4.0)) ** 2) - 1.0
-    body = _smooth_min(body, mal * 9.0, 4.0)
-    return body
+    return -_smooth_min(-body, -np.maximum(z - top, bottom_surface - z), 3.0)
 
 
 def _grid(p: TibiaParameters) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -149,20 +182,21 @@ _RAYS = 720
 DESIGN_SHAFT_LEVELS = (20, 35, 50, 65, 80)
 
 
-def _first_exit(p: TibiaParameters, start: np.ndarray, direction: np.ndarray, reach: float) -> np.ndarray:
+def _first_exit(p: TibiaParameters, start: np.ndarray, direction: np.ndarray, reach: float,
+                field=_field) -> np.ndarray:
     """Distance (mm) from each (n, 3) start point, inside the bone, along its (n, 3) unit direction to where
-    the exact surface is first crossed outwards; NaN where the start is outside or nothing is crossed
-    within ``reach``."""
+    the exact surface (of ``field``) is first crossed outwards; NaN where the start is outside or nothing is
+    crossed within ``reach``."""
     steps = np.arange(0.0, reach + _COARSE_STEP_MM, _COARSE_STEP_MM)
     pts = start[:, None, :] + steps[None, :, None] * direction[:, None, :]
-    outside = _field(pts[..., 0], pts[..., 1], pts[..., 2], p) > 0
+    outside = field(pts[..., 0], pts[..., 1], pts[..., 2], p) > 0
     first = np.argmax(outside, axis=1)
     found = ~outside[:, 0] & outside[np.arange(len(start)), first]
     lo, hi = steps[np.maximum(first - 1, 0)], steps[first]
     for _ in range(_BISECTIONS):
         mid = 0.5 * (lo + hi)
         q = start + mid[:, None] * direction
-        out = _field(q[:, 0], q[:, 1], q[:, 2], p) > 0
+        out = field(q[:, 0], q[:, 1], q[:, 2], p) > 0
         lo, hi = np.where(out, lo, mid), np.where(out, mid, hi)
     return np.where(found, 0.5 * (lo + hi), np.nan)
 
