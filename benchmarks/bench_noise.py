@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 from bonecad.run.bones import bone_settings  # noqa: E402
 from bonecad.run.pipeline import frame_and_contours, load_input  # noqa: E402
 from bonecad.settings import Settings  # noqa: E402
-from bonecad.splines.tspline.fit import fit_adaptive, initial_parameters, local_noise_mm  # noqa: E402
+from bonecad.splines.tspline.fit import fit_adaptive, initial_parameters, local_noise_mm, noise_level_mm  # noqa: E402
 from bonecad.tspline_model.model import fit_points, hole_masks, ring_constraints, tolerances  # noqa: E402
 from bonecad.tspline_model.skinning import initial_mesh, parameterisation, skin  # noqa: E402
 from tests.rough import build_rough  # noqa: E402
@@ -48,6 +48,15 @@ CLEAN = ("TLEM2_CT_tibia_r", "LHDL_CT_tibia_r", "ICL_MRI_tibia_r", "LHDL_CT_femu
          "ICL_MRI_femur_r")
 RADII_MM = (4.0, 6.0)
 HOLD_OUT, ROUNDS = 0.2, (0, 2, 4, 6, 8)
+
+
+def clean_samples(name: str) -> np.ndarray | None:
+    """Samples of the clean tibia under the rough mesh (scanner coordinates, mm); None for a clean mesh."""
+    if name != "rough":
+        return None
+    rough = build_rough()
+    clean = trimesh.Trimesh(rough.clean_vertices, rough.clean_faces, process=False)
+    return trimesh.sample.sample_surface(clean, 60_000, seed=3)[0]
 
 
 def mesh_path(name: str, folder: Path) -> Path:
@@ -68,7 +77,10 @@ def roughness(points: np.ndarray, weights: np.ndarray) -> str:
     return "; ".join(cells)
 
 
-def hold_out(bone, frame, contours, settings: Settings) -> str:
+def hold_out(bone, frame, contours, settings: Settings, clean: np.ndarray | None = None) -> str:
+    """Per round: control points, training / held-out share within 0.25 mm, and with ``clean`` ((m, 3)
+    samples of the clean surface the mesh was made from, scanner coordinates) the share of them within
+    0.25 mm of the fit (outside the apex holes, which the caps close)."""
     st = settings.tspline
     points, weights = fit_points(bone, frame, st)
     par = parameterisation(contours)
@@ -82,14 +94,20 @@ def hold_out(bone, frame, contours, settings: Settings) -> str:
     ts0, _, _ = skin(contours, par, mesh, fairness=st.fairness_weight)
     s0, t0, _ = initial_parameters(ts0, points[train])
     within = st.target_share_within_mm[1]
+    if clean is not None:
+        clean = frame.to_bone(clean)
+        clean = clean[~np.logical_or(*hole_masks(clean, frame, radius))]
     cells = []
     for rounds in ROUNDS:
         fit = fit_adaptive(ts0, points[train], weights[train], s=s0, t=t0,
                            tolerances=replace(tolerances(st), max_rounds=rounds), fairness=st.fit_fairness_weight,
                            constraints=ring_constraints(contours, par, radius))
         _, _, distance = initial_parameters(fit.tspline, points[test])
-        cells.append(f"{fit.tspline.n_control}: {fit.stats.share_within:.3f} / "
-                     f"{np.average(distance <= within, weights=weights[test]):.3f}")
+        cell = (f"{fit.tspline.n_control}: {fit.stats.share_within:.3f} / "
+                f"{np.average(distance <= within, weights=weights[test]):.3f}")
+        if clean is not None:
+            cell += f" / clean {np.mean(initial_parameters(fit.tspline, clean)[2] <= within):.3f}"
+        cells.append(cell)
         if fit.converged:
             break
     return "; ".join(cells)
@@ -98,8 +116,8 @@ def hold_out(bone, frame, contours, settings: Settings) -> str:
 def main(names: list[str]) -> None:
     import tempfile
 
-    print("roughness: quadric RMS residual, 25th percentile / median (mm); hold-out: control points: "
-          "training / held-out share within 0.25 mm")
+    print("roughness: quadric RMS residual, 25th percentile / median (mm); noise level ([tspline]); hold-out: "
+          "control points: training / held-out share within 0.25 mm (/ the clean tibia's under the rough mesh)")
     for name in names:
         with tempfile.TemporaryDirectory() as folder:
             start = time.process_time()
@@ -110,8 +128,12 @@ def main(names: list[str]) -> None:
             points, weights = fit_points(bone, frame, settings.tspline)
             print(f"\n{name}: {len(points)} fit points")
             print(f"  roughness: {roughness(points, weights)}")
+            st = settings.tspline
+            level = noise_level_mm(points, weights, radius_mm=st.noise_level_radius_mm,
+                                   quantile=st.noise_level_quantile)
+            print(f"  noise level {level:.3f} mm: {'rough' if level >= st.rough_noise_level_mm else 'not rough'}")
             if name in ("rough", "TLEM2_CT_tibia_r"):
-                print(f"  hold-out:  {hold_out(bone, frame, contours, settings)}")
+                print(f"  hold-out:  {hold_out(bone, frame, contours, settings, clean_samples(name))}")
             print(f"  {time.process_time() - start:.1f} s CPU", flush=True)
 
 
