@@ -10,15 +10,19 @@ noise estimates a general noise stop could rest on:
 - hold-out: the fit refined on 80 % of the fit points, round by round, and the share of the other
   20 % within 0.25 mm: noise would show as a held-out share that stalls while the training share rises.
 
-Measured (shared host; 32, 18 and 22 s CPU): the rough mesh's roughness (R 4 mm: 0.054 / 0.070 mm;
-R 6 mm: 0.113 / 0.149 mm) equals the clean ICL MRI tibia's (0.063 / 0.084; 0.115 / 0.152 mm) and exceeds
-the clean TLEM2 tibia's (0.032 / 0.052; 0.070 / 0.120 mm) by less than ICL does; its held-out share
-follows the training share up every round (control points: training / held-out, 240: 0.551 / 0.538,
-1424: 0.952 / 0.942, 2385: 0.993 / 0.990) as the clean TLEM2's does (240: 0.612 / 0.601, 1886:
-0.994 / 0.993). These bumps are smooth at the fit points' spacing, so held-out points generalise, and
-no rougher than a clean MRI mesh: neither estimate tells them from shape, and a stop that fired on
-them would fire on the clean ICL tibia too. (A voxel staircase is told apart by its lattice,
-``voxel_step_mm``.)
+Measured (shared host; 26, 24 and 12 s CPU): the rough mesh's roughness (R 4 mm: 0.054 / 0.070 mm;
+R 6 mm: 0.113 / 0.149 mm) equals the ICL MRI tibia's (0.063 / 0.084; 0.115 / 0.152 mm) and exceeds
+the clean CT TLEM2 tibia's (0.032 / 0.052; 0.070 / 0.120 mm); its held-out share follows the training
+share up every round (control points: training / held-out, 240: 0.551 / 0.538, 1424: 0.952 / 0.942,
+2385: 0.993 / 0.990) as the clean TLEM2's does (240: 0.612 / 0.601, 1886: 0.994 / 0.993). These bumps
+are smooth at the fit points' spacing, so held-out points generalise, and an MRI mesh is as rough: the
+fit's noise stop ([tspline] noise_level_*, rough_noise_level_mm) counts both as rough by the lower
+quartile at 6 mm (noise level: rough 0.113, ICL 0.115, TLEM2 0.070 mm), and stops only once the share
+and the RMS hold (it then leaves the maximum unchased). Against the clean tibia under the rough mesh
+(0.781 of it within 0.25 mm of the rough mesh) the share rises with every round (240: 0.565, 590: 0.737,
+1424: 0.777, 2385: 0.782): the bumps are at the fit's scale, so a fit stopped earlier, at the noise's
+RMS (0.211 mm, round 2), lies farther from the bone, not nearer. (A voxel staircase is told apart by
+its lattice, ``voxel_step_mm``.)
 
 Run: python benchmarks/bench_noise.py [NAME ...]  (names: rough, or stems of ../shared/data/{tibia,femur})
 """
