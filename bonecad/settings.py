@@ -199,6 +199,9 @@ class TSplineSettings:
     split_anisotropy: float
     noise_neighbours: int
     noise_factor: float
+    noise_level_radius_mm: float
+    noise_level_quantile: float
+    rough_noise_level_mm: float
     compare_tensor_product: bool
     face_layout: FaceLayout
     panel_face_cost: float

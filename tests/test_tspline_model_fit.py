@@ -270,3 +270,33 @@ def test_staircase_with_a_fold_no_element_can_follow_stops_at_its_noise_and_says
     assert len(fold) >= 4 and res.stats.max_mm > 1.0
     assert "up to the data's noise" in res.stopped and "size limit" in res.stopped, res.stopped
     assert len(res.history) < tol.max_rounds + 1
+
+
+def test_rough_data_stop_at_their_noise_level_once_share_and_rms_hold_and_say_so():
+    """Noise of 0.05 mm RMS and six lone spikes 1.4 mm out: once the share and the RMS hold with the RMS
+    residual at the data's noise level, the spikes beyond the 1 mm maximum are taken for noise (discrepancy
+    principle); without a noise level the fit chases them to the round limit."""
+    from bonecad.splines.tspline.fit import noise_level_mm
+
+    rng = np.random.default_rng(6)
+    pts, s, t = ellipsoid_band(20000, rng)
+    radial = pts * np.array([1.0 / 144, 1.0 / 64, 0.0])
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    area = np.full(len(pts), 2 * np.pi * RADIUS * LENGTH / len(pts))
+    noisy = pts + radial * rng.normal(0.0, 0.05, len(pts))[:, None]
+    # the noise adds to the smooth band's quadric misfit at 6 mm (lower quartile, measured 0.025 -> 0.058 mm)
+    def level(points: np.ndarray) -> float:
+        return noise_level_mm(points, area, radius_mm=6.0, quantile=0.25)
+
+    assert level(noisy) > level(pts) + 0.025
+    spikes = rng.choice(len(pts), 6, replace=False)
+    noisy[spikes] += radial[spikes] * 1.4
+    tol = replace(DEFAULT_TOLERANCES, share_within=(0.99, 0.25), max_deviation_mm=1.0, rms_mm=0.1,
+                  max_control_points=5000, min_element_mm=0.5, max_rounds=8)
+    chased = fit_adaptive(cylinder(8, 4), noisy, s=s, t=t, tolerances=tol, fairness=1e-6)
+    stopped = fit_adaptive(cylinder(8, 4), noisy, s=s, t=t, tolerances=tol, fairness=1e-6, noise_level=0.1)
+    assert "round limit" in chased.stopped and chased.stats.max_mm > 1.0  # measured 283 control points
+    note = stopped.stopped
+    assert note.startswith("stopped at the data's noise") and "6 points beyond 1.0 mm" in note, note
+    assert stopped.tspline.n_control < chased.tspline.n_control / 2  # measured 48
+    assert stopped.stats.share_within >= 0.99 and stopped.stats.rms_mm <= 0.1

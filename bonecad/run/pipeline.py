@@ -23,7 +23,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
@@ -46,6 +46,9 @@ from bonecad.run.executor import Executor, InProcess, executor_for
 from bonecad.settings import Settings, load_profile
 from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
+
+if TYPE_CHECKING:
+    from bonecad.tspline_model.model import MeshNoise
 
 log = logging.getLogger(__name__)
 
@@ -291,7 +294,7 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
         with timings.stage("T-spline model"):
             model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
                                         apex_hole_radius_mm=settings.curves.apex_hole_radius_mm,
-                                        noise_mm=None if noise is None else noise.result(), progress=progress)
+                                        noise=None if noise is None else noise.result(), progress=progress)
         with timings.stage("T-spline files"):
             export("tspline", model, stage_dir)
         with timings.stage("T-spline analysis"):
@@ -338,11 +341,11 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
                           reports={m: reports[m] for m in MODELS if m in reports}, views=views_in_order)
 
 
-def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: Settings) -> np.ndarray:
-    """The mesh's local noise at the T-spline fit's points (mm)."""
-    from bonecad.tspline_model.model import mesh_noise_mm
+def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: Settings) -> MeshNoise:
+    """The mesh's noise at the T-spline fit's points (local, mm) and its noise level (mm)."""
+    from bonecad.tspline_model.model import mesh_noise as measure
 
-    return mesh_noise_mm(bone, frame, settings.tspline)
+    return measure(bone, frame, settings.tspline)
 
 
 def curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path, settings: Settings,

@@ -37,7 +37,7 @@ from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
 from bonecad.splines.tspline.fit import (FitResult, FitStats, FitTolerances, fit_adaptive, initial_parameters,
-                                         local_noise_mm, voxel_step_mm)
+                                         local_noise_mm, noise_level_mm, voxel_step_mm)
 from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger(__name__)
@@ -58,6 +58,9 @@ class TSplineModel(ShapePickling):
     fit : the adaptive fit (final stats, history, why it stopped).
     staircase_voxel_mm : the voxel size when the mesh is a voxel staircase
         (vertices on a lattice: its steps then count as the data's noise), else 0.
+    noise_level_mm : the mesh's noise level (``noise_level_mm`` at the settings'
+        ``noise_level_radius_mm`` and ``noise_level_quantile``); at or above ``rough_noise_level_mm`` the mesh
+        counts as rough and the fit stops at it (``fit_adaptive(noise_level=...)``).
     shape : OCP TopoDS_Shape (closed solid), scanner coordinates; face_names :
         (name, TopoDS_Face) of every face of it ("distal", "shaft", "proximal",
         "distal_apex_cap", "proximal_apex_cap").
@@ -75,6 +78,7 @@ class TSplineModel(ShapePickling):
     face_names: tuple[tuple[str, object], ...]
     frame: AnatomicalFrame
     staircase_voxel_mm: float = 0.0
+    noise_level_mm: float = 0.0
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -104,6 +108,7 @@ class TSplineModel(ShapePickling):
             "fit_converged": self.fit.converged,
             "fit_stopped": self.fit.stopped,
             "staircase_voxel_mm": self.staircase_voxel_mm,
+            "noise_level_mm": self.noise_level_mm,
             "fit_history": [h.to_dict() for h in self.fit.history],
             "skin_residual_mm": {"rms": round(self.skin_residual_mm[0], 4), "max": round(self.skin_residual_mm[1], 4)},
             "parameterisation": self.parameterisation.to_dict(),
@@ -146,11 +151,23 @@ def fit_points(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings
     return fit_samples(*bone_coordinates(bone, frame), settings.fit_point_spacing_mm)
 
 
-def mesh_noise_mm(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings) -> np.ndarray:
-    """The local noise (mm) at every fit point: the same spacing on every mesh, so the same scale; a
-    staircase (voxel-mask mesh), whose lattice shows in scanner coordinates, has at least its steps'."""
-    vertices, _ = fit_points(bone, frame, settings)
-    return local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=voxel_step_mm(bone.vertices))
+@dataclass(frozen=True)
+class MeshNoise:
+    """The mesh's noise at the T-spline fit's points: local_mm (n,) at every fit point (mm), level_mm the
+    mesh's noise level (mm, ``noise_level_mm``)."""
+
+    local_mm: np.ndarray
+    level_mm: float
+
+
+def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings) -> MeshNoise:
+    """The mesh's noise: the local noise at every fit point (the same spacing on every mesh, so the same
+    scale; a staircase (voxel-mask mesh), whose lattice shows in scanner coordinates, has at least its
+    steps'), and its noise level (settings ``noise_level_radius_mm``, ``noise_level_quantile``)."""
+    vertices, weights = fit_points(bone, frame, settings)
+    local = local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=voxel_step_mm(bone.vertices))
+    return MeshNoise(local, noise_level_mm(vertices, weights, radius_mm=settings.noise_level_radius_mm,
+                                           quantile=settings.noise_level_quantile))
 
 
 def hole_masks(vertices: np.ndarray, frame: AnatomicalFrame, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -207,7 +224,7 @@ def build_tspline_model(
     *,
     settings: TSplineSettings,
     apex_hole_radius_mm: float,
-    noise_mm: np.ndarray | None = None,
+    noise: MeshNoise | None = None,
     progress: Callable[[int, FitStats], None] | None = None,
 ) -> TSplineModel:
     """Skin, fit, refine, cap and convert: the T-spline model of a tibia.
@@ -215,7 +232,7 @@ def build_tspline_model(
     settings : the [tspline] settings (``compare_tensor_product`` fits the
         tensor-product comparison surface too; it about doubles the time).
     apex_hole_radius_mm : the contour curves' apex hole radius.
-    noise_mm : ``mesh_noise_mm`` of the same bone, frame and settings, when the
+    noise : ``mesh_noise`` of the same bone, frame and settings, when the
         caller measured it already (the runner does, on the second core).
     progress : called with (round, FitStats) after each round of the fit (the runner's progress bar).
     Raises FitError when a stage cannot produce a usable surface, KernelError
@@ -246,11 +263,15 @@ def build_tspline_model(
     if voxel:
         log.info("the mesh is a %.2f mm voxel staircase (vertices on a lattice): its steps count as noise", voxel)
     s0, t0, _ = initial_parameters(ts0, pts)
-    if noise_mm is None:
-        noise_mm = mesh_noise_mm(bone, frame, st)
-    noise = noise_mm[keep]
+    if noise is None:
+        noise = mesh_noise(bone, frame, st)
+    local = noise.local_mm[keep]
+    level = noise.level_mm
+    rough = level if level >= st.rough_noise_level_mm else 0.0
+    if rough:
+        log.info("the mesh is rough (noise level %.3f mm): the fit stops at its noise", level)
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
-                       constraints=rings, noise=noise, progress=progress)
+                       constraints=rings, noise=local, noise_level=rough, progress=progress)
     timings["fit"] = time.perf_counter() - clock
     if not fit.converged:
         staircase = f"; the mesh is a {voxel:.2f} mm voxel staircase" if voxel else ""
@@ -265,7 +286,7 @@ def build_tspline_model(
         tp0, _, _ = skin(contours, par, grid, fairness=fair)
         s1, t1, _ = initial_parameters(tp0, pts)
         tp_fit = fit_adaptive(tp0, pts, w, s=s1, t=t1, tolerances=tol, fairness=fit_fair, mode="global",
-                              constraints=rings, noise=noise)
+                              constraints=rings, noise=local, noise_level=rough)
         timings["tensor_product"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -288,6 +309,7 @@ def build_tspline_model(
         face_names=tuple(face_names),
         frame=frame,
         staircase_voxel_mm=round(voxel, 4),
+        noise_level_mm=round(level, 4),
         timings_s=timings,
     )
 

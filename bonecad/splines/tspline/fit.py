@@ -257,6 +257,16 @@ def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float 
     return np.maximum(out, voxel_mm / np.sqrt(12.0))
 
 
+def noise_level_mm(points: np.ndarray, weights: np.ndarray, *, radius_mm: float, quantile: float) -> float:
+    """The data's noise level (mm): a low quantile over the points of their scatter about a quadric fitted
+    over a neighbourhood of ``radius_mm`` (``local_noise_mm`` with as many neighbours as cover
+    pi radius^2 of surface; weights: (n,) area each point stands for, mm^2). A low quantile, as
+    measurement noise covers the whole surface and features of shape only part of it: the smoothest
+    part of the surface shows the noise."""
+    area = float(np.sum(weights)) / len(points)
+    return float(np.quantile(local_noise_mm(points, neighbours=int(np.pi * radius_mm**2 / area)), quantile))
+
+
 def voxel_step_mm(points: np.ndarray, *, max_distinct: float = 0.05) -> float:
     """The voxel size of a staircase mesh (0.0 when the mesh is not one).
 
@@ -552,6 +562,7 @@ def fit_adaptive(
     constraints: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
     frozen=None,
     noise: np.ndarray | None = None,
+    noise_level: float = 0.0,
     progress: Callable[[int, FitStats], None] | None = None,
 ) -> FitResult:
     """Fit ``ts`` to points, refining until the tolerances hold or the budget is spent.
@@ -567,6 +578,10 @@ def fit_adaptive(
         bool of elements never to refine.
     noise : optional (n,) mm, the data's local noise level (``local_noise_mm``);
         points within ``tolerances.noise_factor`` times it never ask for refinement.
+    noise_level : the data's noise level (mm, ``noise_level_mm``) when the data are rough, else 0. Once
+        the share and the RMS targets hold with the RMS residual at or below it (discrepancy principle: a
+        closer fit follows the noise), the points beyond the maximum deviation are taken for noise and the
+        fit stops there, saying so.
     progress : optional function called with (round, its FitStats) after each round (the caller's
         progress bar; at most ``tolerances.max_rounds + 1`` rounds).
     """
@@ -598,6 +613,14 @@ def fit_adaptive(
             progress(round_, stats)
         if stats.meets(tol):
             return FitResult(ts, s, t, dist, stats, history, True, "tolerances met")
+        if noise_level > 0 and stats.share_within >= tol.share_within[0] and stats.rms_mm <= min(tol.rms_mm,
+                                                                                                   noise_level):
+            beyond = int(np.sum(dist > tol.max_deviation_mm))
+            stopped = (f"stopped at the data's noise: the share and the RMS hold, and the RMS residual "
+                       f"({stats.rms_mm:.3f} mm) is at the data's noise level ({noise_level:.3f} mm); "
+                       f"{beyond} point{'s' if beyond != 1 else ''} beyond {tol.max_deviation_mm} mm (up to "
+                       f"{dist.max():.2f} mm) taken for noise, not followed")
+            break
         stalled = None if noise_mm is None else dist <= noise_mm
         if stalled is not None and _meets_up_to_noise(dist, w, stalled, tol):
             stopped = (f"tolerances met up to the data's noise: {_noise_note(dist, w, stalled, tol)}; "
