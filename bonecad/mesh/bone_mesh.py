@@ -7,6 +7,7 @@ from functools import cached_property
 import numpy as np
 from bonecad.mesh.closest import TriangleLocator
 from bonecad.mesh.sampling import triangle_areas
+from bonecad.splines.tspline.fit import voxel_step_mm
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,12 @@ class BoneMesh:
     def locator(self) -> TriangleLocator:
         """The closest-point tree of this mesh (built at the first use, then kept; not pickled)."""
         return TriangleLocator(self.vertices, self.faces)
+
+    @cached_property
+    def voxel_step_mm(self) -> float:
+        """The voxel size (mm) of a staircase mesh, 0.0 for any other (``voxel_step_mm``; computed at the first
+        use, then kept: the T-spline fit and its noise read it)."""
+        return voxel_step_mm(self.vertices)
 
     def __getstate__(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if k != "locator"}

@@ -246,8 +246,10 @@ def reconstruct_bone(
             if until == "models":
                 with timings.stage("closest-point tree of the mesh"):
                     # the tree, its vertex normals and triangle areas, built in idle time for both models'
-                    # analysis (their jobs fork later); the working copy's for their 3-D views
+                    # analysis (their jobs fork later); the working copy's for their 3-D views; the voxel step
+                    # for the T-spline fit and its noise (a job of its own)
                     _ = bone.locator.vertex_normals, bone.locator.triangle_areas, bone.work.locator.vertex_normals
+                    _ = bone.voxel_step_mm
             with timings.stage("waiting for the frame and the contour curves"):
                 frame, contours, front_timings = front.result()
             timings.update(front_timings)

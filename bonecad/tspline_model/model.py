@@ -37,7 +37,7 @@ from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
 from bonecad.splines.tspline.fit import (FitResult, FitStats, FitTolerances, fit_adaptive, initial_parameters,
-                                         local_noise_mm, voxel_step_mm)
+                                         local_noise_mm)
 from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger(__name__)
@@ -150,7 +150,7 @@ def mesh_noise_mm(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSetti
     """The local noise (mm) at every fit point: the same spacing on every mesh, so the same scale; a
     staircase (voxel-mask mesh), whose lattice shows in scanner coordinates, has at least its steps'."""
     vertices, _ = fit_points(bone, frame, settings)
-    return local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=voxel_step_mm(bone.vertices))
+    return local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=bone.voxel_step_mm)
 
 
 def hole_masks(vertices: np.ndarray, frame: AnatomicalFrame, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -242,7 +242,7 @@ def build_tspline_model(
     timings["skin"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    voxel = voxel_step_mm(bone.vertices)
+    voxel = bone.voxel_step_mm
     if voxel:
         log.info("the mesh is a %.2f mm voxel staircase (vertices on a lattice): its steps count as noise", voxel)
     s0, t0, _ = initial_parameters(ts0, pts)
