@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
@@ -244,14 +245,19 @@ def load_bone(
     settings: MeshSettings,
     plausible: UnitsSettings,
     keep: Kept = "tibia",
+    working_copy: Callable[..., BoneMesh] = with_working_copy,
 ) -> BoneMesh:
     """Read, clean and check a bone mesh; keep the ``keep`` body (found by anatomy), report the others.
+
+    working_copy : ``with_working_copy`` or a function of the same arguments and result (the runner's, which
+        builds the mesh's closest-point tree meanwhile).
 
     Raises InputError (naming the file) for unreadable files, wrong units, a
     tibia broken into pieces, or a bone fused to a neighbouring bone.
     """
     vertices, faces = read_mesh_file(path)
-    return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible, keep=keep)
+    return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible, keep=keep,
+                        working_copy=working_copy)
 
 
 def prepare_bone(
@@ -263,6 +269,7 @@ def prepare_bone(
     settings: MeshSettings,
     plausible: UnitsSettings,
     keep: Kept = "tibia",
+    working_copy: Callable[..., BoneMesh] = with_working_copy,
 ) -> BoneMesh:
     """Clean raw mesh arrays and keep one body (see ``load_bone``); ``source`` names them in errors.
 
@@ -284,7 +291,7 @@ def prepare_bone(
     length_range = (float(plausible.tibia_length_mm[0]), float(plausible.tibia_length_mm[1]))
     t = choose_tibia(shapes, settings, length_range)
     tibia = bodies[t]
-    bone = with_working_copy(BoneMesh(vertices=tibia.vertices * scale, faces=tibia.faces, source=str(source),
+    bone = working_copy(BoneMesh(vertices=tibia.vertices * scale, faces=tibia.faces, source=str(source),
                                       units="mm", watertight=tibia.watertight), settings,
                              area_mm2=tibia.area * scale**2)
     work = bone.work  # the anatomy is read on the working copy
@@ -297,7 +304,7 @@ def prepare_bone(
         roles[k] = "femur"
         if k != t:
             kept = bodies[k]
-            bone = with_working_copy(BoneMesh(vertices=kept.vertices * scale, faces=kept.faces, source=str(source),
+            bone = working_copy(BoneMesh(vertices=kept.vertices * scale, faces=kept.faces, source=str(source),
                                               units="mm", watertight=kept.watertight), settings,
                                      area_mm2=kept.area * scale**2)
             work = bone.work
