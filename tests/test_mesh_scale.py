@@ -156,3 +156,24 @@ def test_locator_keeps_the_meshs_normals_and_areas(phantom):
     given = sample_surface(phantom.vertices, phantom.faces, 2000, seed=3, areas=locator.triangle_areas)
     afresh = sample_surface(phantom.vertices, phantom.faces, 2000, seed=3)
     assert np.array_equal(given.points, afresh.points) and np.array_equal(given.triangle, afresh.triangle)
+
+
+def test_copy_made_beside_the_tree(dense):
+    """The runner's intake: the working copy simplified in a forked job while the parent builds the full mesh's
+    tree; the same copy as made in turn, and the tree kept by the bone's later copies (not pickled)."""
+    import pickle
+    from dataclasses import replace
+
+    from bonecad.run.executor import executor_for
+    from bonecad.run.pipeline import copy_beside_tree
+
+    with executor_for(True) as ex:
+        bone = prepare_bone(dense.vertices, dense.faces, source="dense phantom", settings=SETTINGS.mesh,
+                            plausible=SETTINGS.units, working_copy=copy_beside_tree(ex))
+    assert np.array_equal(bone.work.vertices, dense.work.vertices) and np.array_equal(bone.work.faces,
+                                                                                        dense.work.faces)
+    (tree,) = [held[2] for held in bone.trees.values()]
+    assert bone.locator is tree and replace(bone, repairs=()).locator is tree  # built once, in the intake
+    assert replace(bone, vertices=bone.vertices + 1.0).locator is not tree  # other arrays: a tree of their own
+    assert bone.locator is tree
+    assert pickle.loads(pickle.dumps(bone)).trees == {}

@@ -7,6 +7,7 @@ from functools import cached_property
 import numpy as np
 from bonecad.mesh.closest import TriangleLocator
 from bonecad.mesh.sampling import triangle_areas
+from bonecad.splines.tspline.fit import voxel_step_mm
 
 
 @dataclass(frozen=True)
@@ -42,14 +43,26 @@ class BoneMesh:
     segmented: bool = False
     extra: dict = field(default_factory=dict)
     working: BoneMesh | None = None
+    #: closest-point trees by the ids of the arrays they were built on (held with them), shared by the
+    #: copies ``dataclasses.replace`` makes (the tree of a dense mesh takes seconds); not pickled
+    trees: dict = field(default_factory=dict, repr=False, compare=False)
 
-    @cached_property
+    @property
     def locator(self) -> TriangleLocator:
         """The closest-point tree of this mesh (built at the first use, then kept; not pickled)."""
-        return TriangleLocator(self.vertices, self.faces)
+        key = (id(self.vertices), id(self.faces))
+        if key not in self.trees:
+            self.trees[key] = (self.vertices, self.faces, TriangleLocator(self.vertices, self.faces))
+        return self.trees[key][2]
+
+    @cached_property
+    def voxel_step_mm(self) -> float:
+        """The voxel size (mm) of a staircase mesh, 0.0 for any other (``voxel_step_mm``; computed at the first
+        use, then kept: the T-spline fit and its noise read it)."""
+        return voxel_step_mm(self.vertices)
 
     def __getstate__(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "locator"}
+        return {**self.__dict__, "trees": {}}
 
     @property
     def work(self) -> BoneMesh:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
@@ -77,6 +78,8 @@ def _read_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     parts = [p for p in parts if len(np.asarray(p.get("faces", ()))) and len(np.asarray(p.get("vertices", ())))]
     if not parts:
         return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64)
+    if len(parts) == 1:  # (no copy: an STL's arrays are hundreds of MB)
+        return np.asarray(parts[0]["vertices"]).reshape(-1, 3), np.asarray(parts[0]["faces"], dtype=np.int64)
     offsets = np.cumsum([0] + [len(p["vertices"]) for p in parts[:-1]])
     vertices = np.concatenate([np.asarray(p["vertices"]).reshape(-1, 3) for p in parts])
     faces = np.concatenate([np.asarray(p["faces"], dtype=np.int64) + o for p, o in zip(parts, offsets)])
@@ -84,8 +87,9 @@ def _read_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
-           ) -> tuple[np.ndarray, np.ndarray, EdgeCounts, list[str]]:
-    """Cleanup; returns the cleaned arrays (vertices float64), their edges and a list of what was repaired.
+           ) -> tuple[np.ndarray, np.ndarray, EdgeCounts, np.ndarray, list[str]]:
+    """Cleanup; returns the cleaned arrays (vertices float64), their edges, the triangles' areas (mm^2, input
+    units) and a list of what was repaired.
 
     Duplicate vertices and faces, degenerate faces and unreferenced vertices
     are removed here (vectorised, in MeshLab's order); a mesh that then has
@@ -100,20 +104,23 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
 
     size = (len(vertices), len(faces))
     merged_vertices, merged = merge_duplicate_vertices(vertices, faces)
+    merged_vertices = merged_vertices.astype(np.float64, copy=False)
     unique = merged[~duplicate_faces(merged)]
-    proper = unique[triangle_areas(merged_vertices.astype(np.float64), unique) > 0]
+    area = triangle_areas(merged_vertices, unique)
+    positive = area > 0
+    proper, area = unique[positive], area[positive]
     used = np.zeros(len(merged_vertices), dtype=bool)
     used[proper] = True
-    kept_vertices, kept_faces = merged_vertices[used].astype(np.float64), (np.cumsum(used) - 1)[proper]
+    kept_vertices, kept_faces = merged_vertices[used], (np.cumsum(used) - 1)[proper]
     edges = edge_counts(kept_faces, len(kept_vertices))
     if edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(kept_faces, edges):
         vertices, faces = _meshlab_clean(vertices, faces, max_hole_edges, note)
-        return vertices, faces, edge_counts(faces, len(vertices)), repairs
+        return vertices, faces, edge_counts(faces, len(vertices)), triangle_areas(vertices, faces), repairs
     note("merged duplicate vertices", size, size := (len(merged_vertices), len(merged)))
     note("removed duplicate faces", size, size := (len(merged_vertices), len(unique)))
     note("removed degenerate (zero-area) faces", size, size := (len(merged_vertices), len(proper)))
     note("removed unreferenced vertices", size, (len(kept_vertices), len(kept_faces)))
-    return kept_vertices, kept_faces, edges, repairs
+    return kept_vertices, kept_faces, edges, area, repairs
 
 
 def _meshlab_clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, note
@@ -149,12 +156,15 @@ class _Body:
     vertices: np.ndarray
     faces: np.ndarray
     volume: float
+    area: float  # mm^2 (input units)
     centroid: np.ndarray  # area-weighted mean of the triangle centres
     watertight: bool  # every edge shared by two faces
 
 
-def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts) -> list[_Body]:
-    """Split into connected bodies, each oriented coherently and outward; largest volume first."""
+def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts, area: np.ndarray) -> list[_Body]:
+    """Split into connected bodies, each oriented coherently and outward; largest volume first.
+
+    area : (m,) the triangles' areas (mm^2)."""
     count, vertex_body = vertex_components(edges)
     edge_body = vertex_body[edges.low_vertex()]
     open_bodies = np.bincount(edge_body[edges.faces_per_edge != 2], minlength=count) > 0
@@ -163,14 +173,14 @@ def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts) -> list[
     narrow = face_body.astype(np.int16) if count <= np.iinfo(np.int16).max else face_body  # (a radix sort)
     face_order = np.argsort(narrow, kind="stable")  # each body's faces in input order
     face_bounds = np.r_[0, np.cumsum(np.bincount(face_body, minlength=count))]
-    area = triangle_areas(vertices, faces)
     corner = [np.take(vertices, faces[:, k], axis=0) for k in range(3)]
     centre_sum = corner[0] + corner[1] + corner[2]  # three times the triangle centres
     del corner
     weighted_centre = np.stack([np.bincount(face_body, area * (centre_sum[:, k] / 3.0), minlength=count)
                                 for k in range(3)], axis=1)
     del centre_sum
-    centroids = weighted_centre / np.maximum(np.bincount(face_body, area, minlength=count), 1e-300)[:, None]
+    areas = np.bincount(face_body, area, minlength=count)
+    centroids = weighted_centre / np.maximum(areas, 1e-300)[:, None]
     volumes = signed_volumes(vertices, faces, face_body, count)
     bodies = []
     for b in range(count):
@@ -180,12 +190,14 @@ def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts) -> list[
         used = np.zeros(len(vertices), dtype=bool)
         used[body_faces] = True
         body_vertices, body_faces = vertices[used], (np.cumsum(used) - 1)[body_faces]
-        volume, watertight = float(volumes[b]), not open_bodies[b]
+        volume, watertight, body_area = float(volumes[b]), not open_bodies[b], float(areas[b])
         if open_bodies[b] or incoherent[b]:
             body_faces, volume, watertight = _mended(body_vertices, body_faces)
+            body_area = float(triangle_areas(body_vertices, body_faces).sum())  # with the holes filled
         if volume < 0:
             body_faces, volume = body_faces[:, ::-1], -volume
-        bodies.append(_Body(body_vertices, np.ascontiguousarray(body_faces), volume, centroids[b], watertight))
+        bodies.append(_Body(body_vertices, np.ascontiguousarray(body_faces), volume, body_area, centroids[b],
+                            watertight))
     bodies.sort(key=lambda body: -body.volume)
     return bodies
 
@@ -201,16 +213,6 @@ def _mended(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float,
     mended = np.asarray(mesh.faces, dtype=np.int64)
     volume = float(signed_volumes(vertices, mended, np.zeros(len(mended), dtype=np.int64), 1)[0])
     return mended, volume, bool(mesh.is_watertight)
-
-
-def _principal_extent(points: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """Principal axis, length along it and the largest width across it (mm)."""
-    centred = points - points.mean(axis=0)
-    _, _, vt = np.linalg.svd(centred[:: max(1, len(points) // 20000)], full_matrices=False)
-    along = centred @ vt[0]
-    across = centred @ vt[1:].T
-    width = float((across.max(axis=0) - across.min(axis=0)).max())
-    return vt[0], float(np.ptp(along)), width
 
 
 def _detect_scale(length: float, width: float, units: Units, path: Path | None,
@@ -243,14 +245,19 @@ def load_bone(
     settings: MeshSettings,
     plausible: UnitsSettings,
     keep: Kept = "tibia",
+    working_copy: Callable[..., BoneMesh] = with_working_copy,
 ) -> BoneMesh:
     """Read, clean and check a bone mesh; keep the ``keep`` body (found by anatomy), report the others.
+
+    working_copy : ``with_working_copy`` or a function of the same arguments and result (the runner's, which
+        builds the mesh's closest-point tree meanwhile).
 
     Raises InputError (naming the file) for unreadable files, wrong units, a
     tibia broken into pieces, or a bone fused to a neighbouring bone.
     """
     vertices, faces = read_mesh_file(path)
-    return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible, keep=keep)
+    return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible, keep=keep,
+                        working_copy=working_copy)
 
 
 def prepare_bone(
@@ -262,6 +269,7 @@ def prepare_bone(
     settings: MeshSettings,
     plausible: UnitsSettings,
     keep: Kept = "tibia",
+    working_copy: Callable[..., BoneMesh] = with_working_copy,
 ) -> BoneMesh:
     """Clean raw mesh arrays and keep one body (see ``load_bone``); ``source`` names them in errors.
 
@@ -269,20 +277,23 @@ def prepare_bone(
     keep : the body kept from a leg (``BoneProfile.body``): the tibia, found first (the other bodies' roles
         are read from their place beside it), or the femur it names; a single body is kept either way."""
     path = Path(source) if source else None
-    vertices, faces, edges, repairs = _clean(vertices, faces, settings.max_hole_edges)
-    bodies = _bodies(vertices, faces, edges)
+    vertices, faces, edges, area, repairs = _clean(vertices, faces, settings.max_hole_edges)
+    bodies = _bodies(vertices, faces, edges, area)
+    del area
     if not bodies or bodies[0].volume <= 0:
         raise InputError("has no closed body with a volume", path)
 
     # units from the largest body (a tibia or a femur: both 15-150 mm wide)
-    _, length, width = _principal_extent(bodies[0].vertices)
-    scale = _detect_scale(length, width, units, path, plausible.tibia_length_mm)
-    shapes = [body_shape(b.vertices * scale, b.volume * scale**3, b.centroid * scale) for b in bodies]
+    shapes = [body_shape(b.vertices, b.volume, b.centroid) for b in bodies]  # input units
+    scale = _detect_scale(shapes[0].length, shapes[0].width, units, path, plausible.tibia_length_mm)
+    shapes = [replace(b, volume=b.volume * scale**3, length=b.length * scale, width=b.width * scale,
+                      centroid=b.centroid * scale) for b in shapes]
     length_range = (float(plausible.tibia_length_mm[0]), float(plausible.tibia_length_mm[1]))
     t = choose_tibia(shapes, settings, length_range)
     tibia = bodies[t]
-    bone = with_working_copy(BoneMesh(vertices=tibia.vertices * scale, faces=tibia.faces, source=str(source),
-                                      units="mm", watertight=tibia.watertight), settings)
+    bone = working_copy(BoneMesh(vertices=tibia.vertices * scale, faces=tibia.faces, source=str(source),
+                                      units="mm", watertight=tibia.watertight), settings,
+                             area_mm2=tibia.area * scale**2)
     work = bone.work  # the anatomy is read on the working copy
     up = proximal_direction(work.vertices, work.faces, shapes[t].centroid, shapes[t].axis)
     roles = body_roles(shapes, t, up, settings)
@@ -293,8 +304,9 @@ def prepare_bone(
         roles[k] = "femur"
         if k != t:
             kept = bodies[k]
-            bone = with_working_copy(BoneMesh(vertices=kept.vertices * scale, faces=kept.faces, source=str(source),
-                                              units="mm", watertight=kept.watertight), settings)
+            bone = working_copy(BoneMesh(vertices=kept.vertices * scale, faces=kept.faces, source=str(source),
+                                              units="mm", watertight=kept.watertight), settings,
+                                     area_mm2=kept.area * scale**2)
             work = bone.work
     infos = [
         BodyInfo(

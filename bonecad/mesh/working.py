@@ -36,10 +36,13 @@ log = logging.getLogger(__name__)
 _UNIT_TRIANGLE_MM2 = np.sqrt(3.0) / 4.0
 
 
-def working_triangles(vertices: np.ndarray, faces: np.ndarray, settings: MeshSettings) -> int | None:
+def working_triangles(vertices: np.ndarray, faces: np.ndarray, settings: MeshSettings, *,
+                      area_mm2: float | None = None) -> int | None:
     """Triangles of the working copy of a mesh (equilateral ones of ``working_edge_mm`` over its area), or
-    None when the mesh has at most ``working_density_factor`` times as many (it is its own working copy)."""
-    area = float(triangle_areas(vertices, faces).sum())
+    None when the mesh has at most ``working_density_factor`` times as many (it is its own working copy).
+
+    area_mm2 : the mesh's area when the caller has it (None: summed here)."""
+    area = float(triangle_areas(vertices, faces).sum()) if area_mm2 is None else area_mm2
     target = int(np.ceil(area / (_UNIT_TRIANGLE_MM2 * settings.working_edge_mm**2)))
     return target if len(faces) > settings.working_density_factor * target else None
 
@@ -69,13 +72,14 @@ def simplified(vertices: np.ndarray, faces: np.ndarray, triangles: int, *, pass_
     return vertices, faces
 
 
-def with_working_copy(bone: BoneMesh, settings: MeshSettings) -> BoneMesh:
+def with_working_copy(bone: BoneMesh, settings: MeshSettings, *, area_mm2: float | None = None) -> BoneMesh:
     """``bone`` with its working copy (``BoneMesh.working``) when it is denser than the settings need.
 
     The copy's ``extra`` holds its largest vertex distance from the full mesh
     (``max_deviation_mm``, measured over every vertex of the full mesh).
+    area_mm2 : the mesh's area when the caller has it (None: summed here).
     """
-    target = working_triangles(bone.vertices, bone.faces, settings)
+    target = working_triangles(bone.vertices, bone.faces, settings, area_mm2=area_mm2)
     while target is not None:
         vertices, faces = simplified(bone.vertices, bone.faces, target,
                                      pass_reduction=settings.working_pass_reduction)

@@ -43,7 +43,7 @@ from bonecad.mesh.intake import Units, load_bone
 from bonecad.mesh.working import with_working_copy
 from bonecad.run.bones import bone_frame, bone_settings, kept_body, named_bone
 from bonecad.run.executor import Executor, InProcess, executor_for
-from bonecad.settings import Settings, load_profile
+from bonecad.settings import MeshSettings, Settings, load_profile
 from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
 
@@ -128,7 +128,8 @@ def is_volume(path: str | Path) -> bool:
     return path.is_dir() or path.name.lower().endswith(VOLUME_SUFFIXES)
 
 
-def segment_ct(path: str | Path, settings: Settings) -> BoneMesh:
+def segment_ct(path: str | Path, settings: Settings, *,
+               working_copy: Callable[..., BoneMesh] = with_working_copy) -> BoneMesh:
     """The tibia's surface from a CT volume (DICOM folder, NIfTI, NRRD, MHA), world mm (LPS).
 
     The segmented tibia passes the same fused-bone check as a mesh input: a
@@ -141,7 +142,7 @@ def segment_ct(path: str | Path, settings: Settings) -> BoneMesh:
     volume = read_volume(path)
     log.info("segmenting bone (%d x %d x %d voxels)", *volume.hu.shape[::-1])
     segmented = segment_bone(volume, settings=settings.imaging, mesh_settings=settings.mesh)
-    bone = with_working_copy(segmented, settings.mesh)
+    bone = working_copy(segmented, settings.mesh)
     for repair in bone.repairs:
         log.info("%s", repair)
     lo, hi = settings.units.tibia_length_mm
@@ -149,12 +150,33 @@ def segment_ct(path: str | Path, settings: Settings) -> BoneMesh:
     return bone
 
 
-def load_input(path: str | Path, settings: Settings, *, units: Units = "auto") -> BoneMesh:
+def load_input(path: str | Path, settings: Settings, *, units: Units = "auto",
+               working_copy: Callable[..., BoneMesh] = with_working_copy) -> BoneMesh:
     """The tibia mesh of an input: read a mesh file, or segment a CT volume (either with the working copy of a
-    surface denser than the tolerance needs, ``mesh.working``)."""
+    surface denser than the tolerance needs, ``mesh.working``, made by ``working_copy``)."""
     if is_volume(path):
-        return segment_ct(path, settings)
-    return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units, keep=kept_body(settings))
+        return segment_ct(path, settings, working_copy=working_copy)
+    return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units, keep=kept_body(settings),
+                     working_copy=working_copy)
+
+
+def working_copy_alone(bone: BoneMesh, settings: MeshSettings, area_mm2: float | None) -> BoneMesh | None:
+    """The working copy ``with_working_copy`` gives ``bone`` (None: none), alone: a background job's result
+    (the full mesh stays in the parent)."""
+    return with_working_copy(bone, settings, area_mm2=area_mm2).working
+
+
+def copy_beside_tree(ex: Executor) -> Callable[..., BoneMesh]:
+    """``with_working_copy`` whose copy is simplified in a job of ``ex`` while this process builds the full
+    mesh's closest-point tree (``BoneMesh.locator``, for the analysis): the two costs that grow with the mesh,
+    on both cores."""
+
+    def working_copy(bone: BoneMesh, settings: MeshSettings, *, area_mm2: float | None = None) -> BoneMesh:
+        job = ex.submit(working_copy_alone, bone, settings, area_mm2)
+        _ = bone.locator
+        return replace(bone, working=job.result())
+
+    return working_copy
 
 
 def run_segment(path: str | Path, out_mesh: str | Path, settings: Settings) -> BoneMesh:
@@ -249,8 +271,10 @@ def reconstruct_bone(
             if until == "models":
                 with timings.stage("closest-point tree of the mesh"):
                     # the tree, its vertex normals and triangle areas, built in idle time for both models'
-                    # analysis (their jobs fork later); the working copy's for their 3-D views
+                    # analysis (their jobs fork later); the working copy's for their 3-D views; the voxel step
+                    # for the T-spline fit and its noise (a job of its own)
                     _ = bone.locator.vertex_normals, bone.locator.triangle_areas, bone.work.locator.vertex_normals
+                    _ = bone.voxel_step_mm
             with timings.stage("waiting for the frame and the contour curves"):
                 frame, contours, front_timings = front.result()
             timings.update(front_timings)
@@ -423,7 +447,11 @@ def reconstruct(
     if out_dir is None:
         out_dir = Path(tempfile.mkdtemp(prefix="bonecad-"))
     with timings.stage("input"):
-        bone = load_input(source, settings, units=units)
+        if until == "models" and executor is None:  # the analysis needs the full mesh's tree
+            with executor_for(settings.pipeline.background_jobs) as ex:
+                bone = load_input(source, settings, units=units, working_copy=copy_beside_tree(ex))
+        else:
+            bone = load_input(source, settings, units=units)
     return reconstruct_bone(bone, out_dir, settings, until=until, timings=timings, executor=executor,
                             progress=progress)
 

@@ -37,7 +37,7 @@ from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
 from bonecad.splines.tspline.fit import (FitResult, FitStats, FitTolerances, fit_adaptive, initial_parameters,
-                                         local_noise_mm, noise_level_mm, voxel_step_mm)
+                                         local_noise_mm, noise_level_mm)
 from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger(__name__)
@@ -165,7 +165,7 @@ def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings
     scale; a staircase (voxel-mask mesh), whose lattice shows in scanner coordinates, has at least its
     steps'), and its noise level (settings ``noise_level_radius_mm``, ``noise_level_quantile``)."""
     vertices, weights = fit_points(bone, frame, settings)
-    local = local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=voxel_step_mm(bone.vertices))
+    local = local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=bone.voxel_step_mm)
     return MeshNoise(local, noise_level_mm(vertices, weights, radius_mm=settings.noise_level_radius_mm,
                                            quantile=settings.noise_level_quantile))
 
@@ -259,7 +259,7 @@ def build_tspline_model(
     timings["skin"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    voxel = voxel_step_mm(bone.vertices)
+    voxel = bone.voxel_step_mm
     if voxel:
         log.info("the mesh is a %.2f mm voxel staircase (vertices on a lattice): its steps count as noise", voxel)
     s0, t0, _ = initial_parameters(ts0, pts)
