@@ -300,7 +300,7 @@ def test_a_worker_killed_mid_bone_loses_nothing(tmp_path, phantoms):
 
     from bonecad.run.cluster import _running_jobs
 
-    folder = _folder(tmp_path, phantoms, 8)
+    folder = _folder(tmp_path, phantoms, 5)  # one done, two mid-bone when the kill comes, two to go
     address = f"tcp://127.0.0.1:{_free_port()}"
     procs = [_start(["scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1], "--no-dashboard"],
                     tmp_path / "scheduler.log")]
@@ -334,7 +334,7 @@ def test_a_worker_killed_mid_bone_loses_nothing(tmp_path, phantoms):
                 os.killpg(p.pid, signal.SIGKILL)
             p.wait()
     assert killed, "no moment with both workers mid-bone"
-    assert result.count("done") == 8 and not result.failures, [r.error for r in result.failures]
+    assert result.count("done") == 5 and not result.failures, [r.error for r in result.failures]
 
 
 def test_an_unreachable_scheduler_is_an_input_error(tmp_path, phantoms):
