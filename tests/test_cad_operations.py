@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from bonecad.occ.exchange import read_named_step
-from bonecad.occ.operations import run_cad_operations, solids, thicken
+from bonecad.occ.brep import is_valid
+from bonecad.occ.operations import run_cad_operations, shells, solids, thicken
 from bonecad.run.cli import main
 
 from .defaults import SETTINGS
@@ -80,6 +81,31 @@ def test_real_tibia_models_pass_the_five_operations(real_tibia_run):
     assert (real_tibia_run / "tspline.step").stat().st_size <= 2_000_000  # lean STEP (panels): 1.26 MB measured
 
 
+def test_the_thick_solid_wall_follows_the_bones_face_order(real_tibia_run):
+    """The wall's offset face i lies beside the bone's face i (CI once saw BRepCheck call ICL's wall an
+    "EnclosedRegion": BRepOffset orders the offset faces by memory address, and the check's verdict followed)."""
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
+    from OCP.TopoDS import TopoDS_Iterator
+
+    def centroids(shell):
+        found, iterator = [], TopoDS_Iterator(shell)
+        while iterator.More():
+            props = GProp_GProps()
+            BRepGProp.SurfaceProperties_s(iterator.Value(), props)
+            found.append(props.CentreOfMass().Coord())
+            iterator.Next()
+        return np.array(found)
+
+    solid, _ = read_named_step(real_tibia_run / "tspline.step")
+    (wall,) = solids(thicken(shells(solid)[0], -1.0))
+    bone, offset = (centroids(s) for s in shells(wall))
+    assert len(bone) == len(offset) == 15
+    apart = np.linalg.norm(offset[:, None] - bone[None], axis=2)
+    assert list(apart.argmin(axis=1)) == list(range(len(bone)))
+    assert is_valid(wall)
+
+
 @pytest.mark.skipif(freecad_command() is None, reason="FreeCAD is not installed (no freecadcmd on PATH; Debian: "
                     "apt-get install freecad)")
 @pytest.mark.parametrize("model", ["nurbs", "tspline"])
@@ -97,7 +123,7 @@ def test_patch_is_exact_untrimmed_and_thickens_into_a_plate_blank(phantom_run, t
     from OCP.BRepTools import BRepTools
     from OCP.Geom import Geom_BSplineSurface
 
-    from bonecad.occ.brep import area_mm2, faces, is_valid, volume_mm3
+    from bonecad.occ.brep import area_mm2, faces, volume_mm3
     from bonecad.occ.operations import offset_shape
     from bonecad.splines.tspline import from_dict
 

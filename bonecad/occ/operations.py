@@ -38,13 +38,13 @@ from OCP.BRepIntCurveSurface import BRepIntCurveSurface_Inter
 from OCP.BRepOffset import BRepOffset_MakeOffset, BRepOffset_Skin
 from OCP.BRepOffsetAPI import BRepOffsetAPI_MakeOffsetShape
 from OCP.BRepPrimAPI import BRepPrimAPI_MakeCylinder, BRepPrimAPI_MakeHalfSpace
-from OCP.BRep import BRep_Tool
+from OCP.BRep import BRep_Builder, BRep_Tool
 from OCP.GeomAbs import GeomAbs_Arc
 from OCP.GProp import GProp_GProps
 from OCP.ShapeAnalysis import ShapeAnalysis_FreeBounds
 from OCP.TopAbs import TopAbs_SHELL, TopAbs_SOLID
 from OCP.TopTools import TopTools_HSequenceOfShape
-from OCP.TopoDS import TopoDS, TopoDS_Shape
+from OCP.TopoDS import TopoDS, TopoDS_Iterator, TopoDS_Shape, TopoDS_Shell, TopoDS_Solid
 from OCP.gp import gp_Ax2, gp_Dir, gp_Lin, gp_Pln, gp_Pnt
 
 from bonecad.errors import KernelError
@@ -183,7 +183,54 @@ def thicken(shape: TopoDS_Shape, thickness_mm: float) -> TopoDS_Shape:
     maker.MakeOffsetShape()
     if not maker.IsDone():
         raise KernelError(f"thickening by {thickness_mm} mm failed: {maker.Error().name}")
-    return maker.Shape()
+    walls = solids(maker.Shape())
+    if shape.ShapeType() != TopAbs_SHELL or len(walls) != 1 or len(shells(walls[0])) != 2:
+        return maker.Shape()
+    return _wall_in_input_order(shape, walls[0], maker.OffsetFacesFromShapes())
+
+
+def _wall_in_input_order(shell: TopoDS_Shape, wall: TopoDS_Shape, images) -> TopoDS_Shape:
+    """The two-shell ``wall`` rebuilt as the input ``shell`` then its offset, whose faces follow the order
+    of the faces they were offset from (``images``: BRepOffset's face images).
+
+    BRepOffset orders the offset shell's faces by a map hashed on memory addresses, and BRepCheck's solid
+    check decides which shell is the cavity by a ray from that shell's first face: on ICL's T-spline the
+    same STEP gave "EnclosedRegion" in 2 of 12 runs, always when one face came first. In a fixed order
+    the same input gives the same solid, and the same verdict, every run.
+    """
+    inputs = _children(shell)
+    rank = {}
+    for index, face in enumerate(inputs):
+        for image in images.Image(face):
+            rank[image] = index
+    outer, offset = sorted(_children(wall), key=lambda s: not any(f.IsSame(inputs[0]) for f in _children(s)))
+
+    def order(face) -> int:
+        found = [index for image, index in rank.items() if face.IsSame(image)]
+        if len(found) != 1:
+            raise KernelError("the thick solid has an offset face that no input face generated")
+        return found[0]
+
+    builder = BRep_Builder()
+    inner, rebuilt = TopoDS_Shell(), TopoDS_Solid()
+    builder.MakeShell(inner)
+    for face in sorted(_children(offset), key=order):
+        builder.Add(inner, face)
+    inner.Closed(True)
+    builder.MakeSolid(rebuilt)
+    builder.Add(rebuilt, outer)
+    builder.Add(rebuilt, inner)
+    return rebuilt
+
+
+def _children(shape: TopoDS_Shape) -> list:
+    """The shapes directly inside ``shape``, in its own order."""
+    iterator = TopoDS_Iterator(shape)
+    found = []
+    while iterator.More():
+        found.append(iterator.Value())
+        iterator.Next()
+    return found
 
 
 def _half_space(point: np.ndarray, normal: np.ndarray):
