@@ -12,7 +12,7 @@ from bonecad.run.cli import main
 from tests.cohorts import design, phantom_parameters, varied
 from tests.defaults import SETTINGS
 
-from .conftest import real_mesh_params
+from .conftest import phantoms_on_both_cores, real_mesh_params
 
 pytestmark = pytest.mark.slow
 
@@ -25,14 +25,14 @@ TRAINING, HELD_OUT = 12, 2
 def cohort(tmp_path_factory):
     """(cohort folder, [(name, BoneMesh, TibiaParameters)], {name: TemplateFit}, held-out [(BoneMesh, params)]);
     the fits on both cores."""
-    import bonecad
     from bonecad.run.shapes import write_cohort
 
     params = phantom_parameters(TRAINING + HELD_OUT, seed=1)
-    bones = [(f"phantom{i:02d}", bonecad.phantom_tibia(p), p) for i, p in enumerate(params[:TRAINING])]
+    meshes = phantoms_on_both_cores(params)
+    bones = [(f"phantom{i:02d}", bone, p) for i, (bone, p) in enumerate(zip(meshes[:TRAINING], params))]
     folder = tmp_path_factory.mktemp("cohort") / "cohort"
     fits = write_cohort([(n, b, varied(p)) for n, b, p in bones], folder, SETTINGS, background=True)
-    held = [(bonecad.phantom_tibia(p), p) for p in params[TRAINING:]]
+    held = list(zip(meshes[TRAINING:], params[TRAINING:]))
     return folder, bones, fits, held
 
 
