@@ -130,6 +130,27 @@ def test_budget_stops_refinement_and_says_so():
     assert rounds == list(enumerate(res.history)) and len(rounds) >= 2
 
 
+def test_local_noise_is_the_rms_residual_of_each_points_own_quadric(rng):
+    """The batched local noise against the definition, point by point: the RMS residual of the least-squares
+    quadric height field over the point's nearest neighbours in their principal axes."""
+    from scipy.spatial import cKDTree
+
+    from bonecad.splines.tspline.fit import local_noise_mm
+
+    pts, _, _ = ellipsoid_band(40000, rng)  # more than two of the batches
+    pts = pts + rng.normal(0.0, 0.05, pts.shape)
+    noise = local_noise_mm(pts, neighbours=30)
+    _, idx = cKDTree(pts).query(pts, k=30)
+    for i in rng.choice(len(pts), 25, replace=False):
+        q = pts[idx[i]] - pts[idx[i]].mean(axis=0)
+        axes = np.linalg.eigh(q.T @ q)[1]  # ascending: the normal first
+        z, x, y = (q @ axes).T
+        design = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+        residual = z - design @ np.linalg.lstsq(design, z, rcond=None)[0]
+        assert noise[i] == pytest.approx(np.sqrt(np.mean(residual**2)), rel=1e-6)
+    assert 0.03 < np.median(noise) < 0.06  # the 0.05 mm of noise, less what a quadric of 30 points absorbs
+
+
 def test_staircase_is_recognised_and_stops_refinement_at_its_noise():
     from bonecad.splines.tspline.fit import local_noise_mm, voxel_step_mm
 

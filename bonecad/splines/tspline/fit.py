@@ -241,18 +241,24 @@ def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float 
         return np.zeros(len(points))
     _, idx = cKDTree(points).query(points, k=k, workers=-1)
     out = np.empty(len(points))
-    for lo in range(0, len(points), 1 << 15):
-        nb = points[idx[lo : lo + (1 << 15)]]  # (m, k, 3)
+    for lo in range(0, len(points), 1 << 14):
+        nb = points[idx[lo : lo + (1 << 14)]]  # (m, k, 3)
         q = nb - nb.mean(axis=1, keepdims=True)
-        # batched matmuls throughout (several times faster than the equivalent einsums)
+        # batched matmuls throughout (several times faster than the equivalent einsums), on arrays whose
+        # last axis runs over the neighbours: every coordinate and quadric term a contiguous row (stacking
+        # the terms along a last axis of 6 took 2 of the 4 s at 61 k points and 180 neighbours)
         _, vec = np.linalg.eigh(q.transpose(0, 2, 1) @ q)  # ascending: vec[..., 0] = normal
-        loc = q @ vec
-        z, x, y = loc[..., 0], loc[..., 1], loc[..., 2]
-        design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)  # (m, k, 6)
-        design_t = design.transpose(0, 2, 1)
-        ata = design_t @ design + 1e-9 * np.eye(6)
-        coef = np.linalg.solve(ata, design_t @ z[..., None])
-        res = z - (design @ coef)[..., 0]
+        local = vec.transpose(0, 2, 1) @ q.transpose(0, 2, 1)  # (m, 3, k): height, then the two tangents
+        z, x, y = local[:, 0], local[:, 1], local[:, 2]
+        design = np.empty((len(nb), 6, nb.shape[1]))  # (m, 6, k): 1, x, y, x^2, xy, y^2
+        design[:, 0] = 1.0
+        design[:, 1], design[:, 2] = x, y
+        np.multiply(x, x, out=design[:, 3])
+        np.multiply(x, y, out=design[:, 4])
+        np.multiply(y, y, out=design[:, 5])
+        ata = design @ design.transpose(0, 2, 1) + 1e-9 * np.eye(6)
+        coef = np.linalg.solve(ata, design @ z[..., None])  # (m, 6, 1)
+        res = z - (coef.transpose(0, 2, 1) @ design)[:, 0]
         out[lo : lo + len(nb)] = np.sqrt(np.mean(res**2, axis=1))
     return np.maximum(out, voxel_mm / np.sqrt(12.0))
 
