@@ -44,11 +44,11 @@ from OCP.GProp import GProp_GProps
 from OCP.ShapeAnalysis import ShapeAnalysis_FreeBounds
 from OCP.TopAbs import TopAbs_SHELL, TopAbs_SOLID
 from OCP.TopTools import TopTools_HSequenceOfShape
-from OCP.TopoDS import TopoDS, TopoDS_Iterator, TopoDS_Shape, TopoDS_Shell, TopoDS_Solid
+from OCP.TopoDS import TopoDS, TopoDS_Shape, TopoDS_Shell, TopoDS_Solid
 from OCP.gp import gp_Ax2, gp_Dir, gp_Lin, gp_Pln, gp_Pnt
 
 from bonecad.errors import KernelError
-from bonecad.occ.brep import _subshapes, area_mm2, edges, is_valid, volume_mm3
+from bonecad.occ.brep import _subshapes, area_mm2, edges, faces, is_valid, volume_mm3
 
 #: Tolerance handed to the offset algorithms (mm).
 OFFSET_TOLERANCE_MM = 1e-3
@@ -198,15 +198,12 @@ def _wall_in_input_order(shell: TopoDS_Shape, wall: TopoDS_Shape, images) -> Top
     same STEP gave "EnclosedRegion" in 2 of 12 runs, always when one face came first. In a fixed order
     the same input gives the same solid, and the same verdict, every run.
     """
-    inputs = _children(shell)
-    rank = {}
-    for index, face in enumerate(inputs):
-        for image in images.Image(face):
-            rank[image] = index
-    outer, offset = sorted(_children(wall), key=lambda s: not any(f.IsSame(inputs[0]) for f in _children(s)))
+    inputs = faces(shell)
+    generated = [(image, index) for index, face in enumerate(inputs) for image in images.Image(face)]
+    outer, offset = sorted(shells(wall), key=lambda s: not any(f.IsSame(inputs[0]) for f in faces(s)))
 
     def order(face) -> int:
-        found = [index for image, index in rank.items() if face.IsSame(image)]
+        found = [index for image, index in generated if face.IsSame(image)]
         if len(found) != 1:
             raise KernelError("the thick solid has an offset face that no input face generated")
         return found[0]
@@ -214,23 +211,13 @@ def _wall_in_input_order(shell: TopoDS_Shape, wall: TopoDS_Shape, images) -> Top
     builder = BRep_Builder()
     inner, rebuilt = TopoDS_Shell(), TopoDS_Solid()
     builder.MakeShell(inner)
-    for face in sorted(_children(offset), key=order):
+    for face in sorted(faces(offset), key=order):  # each as the solid sees it: the new shell is forward
         builder.Add(inner, face)
     inner.Closed(True)
     builder.MakeSolid(rebuilt)
     builder.Add(rebuilt, outer)
     builder.Add(rebuilt, inner)
     return rebuilt
-
-
-def _children(shape: TopoDS_Shape) -> list:
-    """The shapes directly inside ``shape``, in its own order."""
-    iterator = TopoDS_Iterator(shape)
-    found = []
-    while iterator.More():
-        found.append(iterator.Value())
-        iterator.Next()
-    return found
 
 
 def _half_space(point: np.ndarray, normal: np.ndarray):
