@@ -234,6 +234,13 @@ def _descendants(pid: int) -> set[psutil.Process]:
         return set()
 
 
+def _journaled(journal: Path) -> list[Path]:
+    """The journal's finished bones: its .json entries, not the hidden staging files (``.NAME.json.XXXX.json``)
+    an entry is written into before its rename (pathlib's glob matches those too: a run interrupted at the
+    sight of one had journaled nothing)."""
+    return [p for p in journal.glob("*.json") if not p.name.startswith(".")]
+
+
 def test_an_interrupted_run_resumes_where_it_stopped(tmp_path, phantoms):
     folder = _folder(tmp_path, phantoms, PHANTOMS)
     out = tmp_path / "out"
@@ -243,7 +250,7 @@ def test_an_interrupted_run_resumes_where_it_stopped(tmp_path, phantoms):
     processes: set[psutil.Process] = set()
     try:
         deadline = time.monotonic() + DEADLINE_S
-        while not list(journal.glob("*.json")) and time.monotonic() < deadline and run.proc.poll() is None:
+        while not _journaled(journal) and time.monotonic() < deadline and run.proc.poll() is None:
             processes |= _descendants(run.proc.pid)
             time.sleep(0.05)
         processes |= _descendants(run.proc.pid)
@@ -257,7 +264,7 @@ def test_an_interrupted_run_resumes_where_it_stopped(tmp_path, phantoms):
     assert "the same command resumes" in run.stderr()
     _, alive = psutil.wait_procs(processes, timeout=10)
     assert processes and not alive, alive  # the local cluster's processes were there, and are gone
-    first = {p.name: p.stat().st_mtime_ns for p in journal.glob("*.json")}
+    first = {p.name: p.stat().st_mtime_ns for p in _journaled(journal)}
     assert 0 < len(first) < PHANTOMS and not (out / "cohort.csv").exists()
 
     rerun = subprocess.run(cli("cohort", folder, "--out", out, "--workers", 2, "--config", config), env=cli_env(),
@@ -317,7 +324,7 @@ def test_a_worker_killed_mid_bone_loses_nothing(tmp_path, phantoms):
                 deadline = time.monotonic() + DEADLINE_S
                 while time.monotonic() < deadline:
                     busy = {w: jobs for w, jobs in client.run(_running_jobs).items() if jobs}
-                    if len(busy) == 2 and list((tmp_path / "out" / ".bones").glob("*.json")):
+                    if len(busy) == 2 and _journaled(tmp_path / "out" / ".bones"):
                         worker, jobs = sorted(busy.items())[0]
                         killed.update(worker=worker, pid=pids[worker], key=next(iter(jobs)))
                         os.killpg(os.getpgid(pids[worker]), signal.SIGKILL)  # the worker and its nanny
