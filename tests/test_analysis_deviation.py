@@ -228,6 +228,23 @@ def test_closest_points_match_brute_force():
     np.testing.assert_allclose(got.distance, brute, atol=1e-12)
 
 
+def test_closest_points_do_not_depend_on_the_order_they_are_asked_in(sphere_fine):
+    """The locator asks its tree in its own (coherent) order: each point's answer is its own, in the caller's
+    order; distance() agrees with query()."""
+    rng = np.random.default_rng(8)
+    points = rng.normal(size=(3000, 3)) * 12.0
+    locator = TriangleLocator(sphere_fine.vertices, sphere_fine.triangles)
+    got = locator.query(points)
+    shuffled = rng.permutation(len(points))
+    again = locator.query(points[shuffled])
+    np.testing.assert_array_equal(again.triangle, got.triangle[shuffled])
+    np.testing.assert_array_equal(again.points, got.points[shuffled])
+    np.testing.assert_allclose(locator.distance(points), got.distance, rtol=0, atol=1e-12)
+    # the answer of each point alone
+    for i in rng.choice(len(points), 20, replace=False):
+        assert locator.query(points[i:i + 1]).triangle[0] == got.triangle[i]
+
+
 def test_sampling_is_deterministic_and_area_weighted():
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [10, 0, 0], [13, 0, 0], [10, 3, 0]], float)
     faces = np.array([[0, 1, 2], [3, 4, 5]])

@@ -4,7 +4,11 @@ Closest point on one triangle: the foot on the triangle's plane when it lies
 inside, else the nearest of the three clamped edge projections (the regions of
 Ericson, *Real-Time Collision Detection* (2005), 5.1.5, evaluated branch-free).
 The nearest triangle of each query point comes from libigl's bounding-box tree
-(exact, C++; 200 k points on a 120 k-triangle tibia in about 0.6 s).
+(exact, C++), the points asked in a spatially coherent order (the leaf order
+of a k-d tree of the points): each descent then finds the tree's nodes in
+cache from the one before; the answers are the same as in any order
+(each point's search is independent), in 2.4 times less CPU (100 k points
+near a 120 k-triangle tibia: 0.40 -> 0.17 s, the k-d tree 0.02 s of it).
 """
 from __future__ import annotations
 
@@ -130,11 +134,26 @@ class TriangleLocator:
         """(m,) mm^2: the area of each triangle (computed at the first use, then kept)."""
         return triangle_areas(self.vertices, self.triangles)
 
+    def _nearest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(squared distance (N,) mm^2, nearest triangle (N,)) of ``points`` (N, 3), asked of the tree in a
+        coherent order (module doc) and returned in the points' own."""
+        from scipy.spatial import cKDTree
+
+        finite = np.flatnonzero(np.isfinite(points).all(axis=1))  # (a k-d tree takes finite points only)
+        order = finite[cKDTree(points[finite], balanced_tree=False, compact_nodes=False).indices]
+        if len(finite) < len(points):
+            order = np.concatenate([order, np.flatnonzero(~np.isfinite(points).all(axis=1))])
+        squared, triangle, _ = self._tree.squared_distance(self.vertices, self.triangles, points[order])
+        squared_out, triangle_out = np.empty(len(points)), np.empty(len(points), dtype=np.int64)
+        squared_out[order], triangle_out[order] = np.ravel(squared), np.ravel(triangle)
+        return squared_out, triangle_out
+
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(N,) mm: the distance of each of ``points`` (N, 3) from the mesh (the tree's own, no closest points)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
-        squared, _, _ = self._tree.squared_distance(self.vertices, self.triangles, points)
-        return np.sqrt(np.asarray(squared, dtype=np.float64).ravel())
+        if len(points) == 0:
+            return np.empty(0)
+        return np.sqrt(self._nearest(points)[0])
 
     def query(self, points: np.ndarray) -> ClosestPoints:
         """Closest points of ``points`` (N, 3) on the mesh: the exact nearest point of every one."""
@@ -143,8 +162,7 @@ class TriangleLocator:
             raise ValueError(f"points must be (N, 3), got {points.shape}")
         if len(points) == 0:
             return ClosestPoints(np.empty((0, 3)), np.empty(0, dtype=np.int64), np.empty((0, 3)), np.empty(0))
-        _, triangle, _ = self._tree.squared_distance(self.vertices, self.triangles, points)
-        triangle = np.asarray(triangle, dtype=np.int64).ravel()
+        triangle = self._nearest(points)[1]
         tri = self.vertices[self.triangles[triangle]]
         closest, barycentric = closest_point_on_triangles(points, tri[:, 0], tri[:, 1], tri[:, 2])
         return ClosestPoints(closest, triangle, barycentric, np.linalg.norm(points - closest, axis=1))
