@@ -201,6 +201,7 @@ class TSplineSettings:
     noise_factor: float
     noise_level_radius_mm: float
     noise_level_quantile: float
+    noise_level_stride: int
     rough_noise_level_mm: float
     compare_tensor_product: bool
     face_layout: FaceLayout

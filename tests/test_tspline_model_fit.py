@@ -149,6 +149,21 @@ def test_local_noise_is_the_rms_residual_of_each_points_own_quadric(rng):
         residual = z - design @ np.linalg.lstsq(design, z, rcond=None)[0]
         assert noise[i] == pytest.approx(np.sqrt(np.mean(residual**2)), rel=1e-6)
     assert 0.03 < np.median(noise) < 0.06  # the 0.05 mm of noise, less what a quadric of 30 points absorbs
+    # near some points only: the same scatter, their neighbours still among all points
+    some = rng.choice(len(pts), 3000, replace=False)
+    np.testing.assert_allclose(local_noise_mm(pts, neighbours=30, at=some), noise[some], rtol=1e-9)
+
+
+def test_the_noise_level_of_a_sample_of_points_is_that_of_all(rng):
+    """The noise level's quantile over every 4th point ([tspline] noise_level_stride) lies within 1 % of the
+    quantile over all points, on a surface whose noise varies from place to place."""
+    from bonecad.splines.tspline.fit import noise_level_mm
+
+    pts, _, t = ellipsoid_band(40000, rng)
+    pts = pts + rng.normal(0.0, 1.0, pts.shape) * (0.02 + 0.08 * t / t.max())[:, None]
+    area = np.full(len(pts), 2.0)
+    every = noise_level_mm(pts, area, radius_mm=4.0, quantile=0.25)
+    assert noise_level_mm(pts, area, radius_mm=4.0, quantile=0.25, stride=4) == pytest.approx(every, rel=0.01)
 
 
 def test_staircase_is_recognised_and_stops_refinement_at_its_noise():

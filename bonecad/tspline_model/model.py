@@ -167,7 +167,8 @@ def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings
     vertices, weights = fit_points(bone, frame, settings)
     local = local_noise_mm(vertices, neighbours=settings.noise_neighbours, voxel_mm=bone.voxel_step_mm)
     return MeshNoise(local, noise_level_mm(vertices, weights, radius_mm=settings.noise_level_radius_mm,
-                                           quantile=settings.noise_level_quantile))
+                                           quantile=settings.noise_level_quantile,
+                                           stride=settings.noise_level_stride))
 
 
 def hole_masks(vertices: np.ndarray, frame: AnatomicalFrame, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:

@@ -218,8 +218,10 @@ def initial_parameters(
     return project_points(ts, points, ss.ravel()[idx], tt.ravel()[idx], iterations=iterations)
 
 
-def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float = 0.0) -> np.ndarray:
-    """(n,) mm: how far the data scatter about a smooth surface near each point.
+def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float = 0.0,
+                   at: np.ndarray | None = None) -> np.ndarray:
+    """(n,) mm: how far the data scatter about a smooth surface near each point (``at``: only near these
+    indices of ``points``, their neighbours still among all points; None: every point).
 
     For every point, a quadric height field z = a + bx + cy + dx^2 + exy + fy^2
     is fitted (least squares) to its ``neighbours`` nearest points in the
@@ -236,12 +238,13 @@ def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float 
     the smooth surface through it (a uniform error over one step).
     """
     points = np.asarray(points, dtype=np.float64)
+    centres = points if at is None else points[at]
     k = min(neighbours, len(points))
     if k < 10:
-        return np.zeros(len(points))
-    _, idx = cKDTree(points).query(points, k=k, workers=-1)
-    out = np.empty(len(points))
-    for lo in range(0, len(points), 1 << 14):
+        return np.zeros(len(centres))
+    _, idx = cKDTree(points).query(centres, k=k, workers=-1)
+    out = np.empty(len(centres))
+    for lo in range(0, len(centres), 1 << 14):
         nb = points[idx[lo : lo + (1 << 14)]]  # (m, k, 3)
         q = nb - nb.mean(axis=1, keepdims=True)
         # batched matmuls throughout (several times faster than the equivalent einsums), on arrays whose
@@ -263,14 +266,18 @@ def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float 
     return np.maximum(out, voxel_mm / np.sqrt(12.0))
 
 
-def noise_level_mm(points: np.ndarray, weights: np.ndarray, *, radius_mm: float, quantile: float) -> float:
+def noise_level_mm(points: np.ndarray, weights: np.ndarray, *, radius_mm: float, quantile: float,
+                   stride: int = 1) -> float:
     """The data's noise level (mm): a low quantile over the points of their scatter about a quadric fitted
     over a neighbourhood of ``radius_mm`` (``local_noise_mm`` with as many neighbours as cover
     pi radius^2 of surface; weights: (n,) area each point stands for, mm^2). A low quantile, as
     measurement noise covers the whole surface and features of shape only part of it: the smoothest
-    part of the surface shows the noise."""
+    part of the surface shows the noise. stride : the quantile over every stride-th point (the
+    neighbourhoods overlap: a sample of them gives the quantile, at a stride-th of the cost)."""
     area = float(np.sum(weights)) / len(points)
-    return float(np.quantile(local_noise_mm(points, neighbours=int(np.pi * radius_mm**2 / area)), quantile))
+    scatter = local_noise_mm(points, neighbours=int(np.pi * radius_mm**2 / area),
+                             at=np.arange(0, len(points), stride))
+    return float(np.quantile(scatter, quantile))
 
 
 def voxel_step_mm(points: np.ndarray, *, max_distinct: float = 0.05) -> float:
