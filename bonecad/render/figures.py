@@ -474,7 +474,10 @@ def histograms_png(path: str | Path, models: dict[str, dict[str, Histogram]], *,
         labels.append(f"tolerance +-{tolerance_mm:g} mm")
     grid[0, 0].legend(handles, labels, loc="upper left", fontsize=9)
     fig.suptitle(title + " (+ = mesh outside the CAD model)")
-    fig.tight_layout()
+    # fixed margins in inches (what tight_layout found for this grid, which cost 0.23 of the 1.0 s CPU of the figure)
+    width, height = fig.get_size_inches()
+    fig.subplots_adjust(left=0.75 / width, right=1.0 - 0.1 / width, bottom=0.55 / height, top=1.0 - 0.75 / height,
+                        wspace=0.08, hspace=0.1)
     return save_figure(fig, path)
 
 
