@@ -333,8 +333,16 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
         built["nurbs"], reports["nurbs"], views["nurbs"] = nurbs
     views_in_order: tuple[ViewMesh, ...] = ()
     if models:
+        from bonecad.render.figures import histograms_png
+
+        shown = [m for m in MODELS if m in reports]
+        tolerances = Tolerances.of(settings.tspline)
+        # the histograms' figure on the other core, beside the 3-D view, the morphometry and the page
+        histograms = ex.submit(histograms_png, stage_dir / "histograms.png",
+                               {m: {"whole bone": dev.mesh_to_cad.histogram, **dev.mesh_to_cad.region_histograms}
+                                for m in shown if (dev := reports[m].deviation) is not None},
+                               tolerance_mm=tolerances.within_mm)
         with timings.stage("3-D view"):
-            shown = [m for m in MODELS if m in reports]
             deviations = {m: dev.vertex_deviation_mm for m in shown if (dev := reports[m].deviation) is not None}
             views_in_order = (input_view(bone.work.vertices, bone.work.faces, deviations,
                                          settings.analysis.view_max_triangles),
@@ -344,20 +352,12 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
             with timings.stage("morphometry"):
                 measured = measure_tibia(bone, frame, settings.morphometry).values()
         with timings.stage("report"):
-            from bonecad.render.figures import histograms_png
-
-            tolerances = Tolerances.of(settings.tspline)
-            figures = {"curves": stage_dir / "curves.png",
-                       "histograms": histograms_png(
-                           stage_dir / "histograms.png",
-                           {m: {"whole bone": dev.mesh_to_cad.histogram, **dev.mesh_to_cad.region_histograms}
-                            for m in shown if (dev := reports[m].deviation) is not None},
-                           tolerance_mm=tolerances.within_mm)}
+            viewer = viewer_html(list(views_in_order), frame.as_dict())
+            figures = {"curves": stage_dir / "curves.png", "histograms": histograms.result()}
             doc = ReportDocument(input_summary={**bone.summary(), "side": frame.side}, frame=frame.as_dict(),
                                  models=tuple(reports[m] for m in MODELS if m in reports),
                                  timings_s={**timings.seconds, "total (wall)": timings.wall_s()},
-                                 tolerances=tolerances, contours=contours, figures=figures,
-                                 viewer=viewer_html(list(views_in_order), frame.as_dict()),
+                                 tolerances=tolerances, contours=contours, figures=figures, viewer=viewer,
                                  morphometry=measured)
             export("report", doc, stage_dir)
     return Reconstruction(bone=bone, frame=frame, contours=contours,
