@@ -94,3 +94,26 @@ def test_panels_show_the_images_at_their_own_pixels():
         assert shown.shape[:2] == image.shape[:2]
         # inside the frame (its line, 1.1 px wide, reaches into the second row of pixels)
         np.testing.assert_array_equal(shown[2:-2, 2:-2], as_bytes(image)[2:-2, 2:-2, :3])
+
+
+def test_shape_modes_share_one_scale(tmp_path):
+    """Panels of the shape modes are drawn on one pixel grid: a shape twice the size covers four times the
+    pixels, and the figure is written."""
+    from PIL import Image
+
+    from bonecad.render.figures import shape_modes_png
+
+    vertices, faces = _polytope(5)
+    panels = [("small", vertices, faces, np.zeros(len(vertices))), ("large", 2 * vertices, faces, vertices[:, 2] / 20)]
+    path = shape_modes_png(tmp_path / "modes.png", panels, np.eye(3), title="modes", limit_mm=1.0, height_px=300)
+    image = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    assert image.shape[0] == 300 + 230
+    frame = screen_axes(np.eye(3), "anterior")
+    small, large = (ConvexHull(to_screen(v, frame)[:, :2]).volume for _, v, _, _ in panels)
+    assert large == pytest.approx(4 * small)
+    # the covered pixels inside the two panels (each as wide as the common bounds: panel_figure's layout,
+    # 120 px left, 100 px between, 140 px a panel and 80 px of margins in all, 120 px for the bar)
+    width = (image.shape[1] - 2 * 140 - 80 - 120) // 2
+    covered = (image[125 + 2:425 - 2] < 250).any(axis=2)
+    small_px, large_px = (covered[:, x + 2:x + width - 2].sum() for x in (120, 120 + width + 100))
+    assert large_px / small_px == pytest.approx(4.0, rel=0.05)

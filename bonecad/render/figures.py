@@ -388,6 +388,27 @@ def _colour_panels(axes, rasters: list[Raster], views, images: list[np.ndarray])
     axes[0].set_ylabel("mm (proximal up)")
 
 
+def _shaded(raster: Raster, norm, cmap) -> np.ndarray:
+    """(H, W, 3) RGB in [0, 1]: ``values[..., 0]`` through ``cmap`` after ``norm``, shaded by the normal's
+    z (0.45 edge-on to 1 facing the viewer); white where nothing is drawn."""
+    covered = raster.mask
+    rgb = np.ones((*covered.shape, 3))
+    shade = 0.45 + 0.55 * np.abs(raster.normal[covered, 2])
+    rgb[covered] = cmap(norm(raster.values[covered, 0]))[:, :3] * shade[:, None]
+    return rgb
+
+
+def _colour_bar(fig, axes, norm, cmap, label: str, length: float) -> None:
+    """A colour bar 100 px right of the last panel, 56 px wide, ``length`` of the panels' height: an axes
+    of its own, not room taken from the panels (they keep their 1:1 pixels)."""
+    from matplotlib import cm
+
+    left, bottom, width, height = axes[-1].get_position().bounds
+    fig_w = fig.get_figwidth() * fig.dpi
+    cax = fig.add_axes((left + width + 100 / fig_w, bottom + (1 - length) / 2 * height, 56 / fig_w, length * height))
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax, extend="both").set_label(label)
+
+
 def deviation_map_png(
     path: str | Path,
     vertices: np.ndarray,
@@ -408,7 +429,7 @@ def deviation_map_png(
     about 0, clipped at ``limit_mm`` (default: the 99th percentile of
     |deviation| rounded up to 0.05 mm, at least 0.05 mm).
     """
-    from matplotlib import cm, colormaps, colors
+    from matplotlib import colormaps, colors
 
     d = np.asarray(vertex_deviation_mm, dtype=np.float64)
     if limit_mm is None:
@@ -416,22 +437,9 @@ def deviation_map_png(
     rasters = render_mesh_values(vertices, triangles, d, frame, VIEWS, height_px=height_px, pixels=pixels)
     norm = colors.Normalize(vmin=-limit_mm, vmax=limit_mm)
     cmap = colormaps["RdBu_r"]
-    images = []
-    for raster in rasters:
-        covered = raster.mask
-        rgb = np.ones((*covered.shape, 3))
-        shade = 0.45 + 0.55 * np.abs(raster.normal[covered, 2])
-        rgb[covered] = cmap(norm(raster.values[covered, 0]))[:, :3] * shade[:, None]
-        images.append(rgb)
     fig, axes = panel_figure(rasters, height_px, extra_width_px=220)
-    _colour_panels(axes, rasters, VIEWS, images)
-    # the bar in the room on the right (100 px off, 56 px wide), 70 % of the panels' height: an axes of its own,
-    # not space taken from the panels (they keep their 1:1 pixels)
-    left, bottom, width, panel_h = axes[-1].get_position().bounds
-    fig_w = fig.get_figwidth() * fig.dpi
-    cax = fig.add_axes((left + width + 100 / fig_w, bottom + 0.15 * panel_h, 56 / fig_w, 0.7 * panel_h))
-    bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax, extend="both")
-    bar.set_label("signed deviation, mm (+ = mesh outside the CAD model)")
+    _colour_panels(axes, rasters, VIEWS, [_shaded(r, norm, cmap) for r in rasters])
+    _colour_bar(fig, axes, norm, cmap, "signed deviation, mm (+ = mesh outside the CAD model)", 0.7)
     fig.suptitle(title)
     return save_figure(fig, path, palette=True)
 
@@ -509,24 +517,27 @@ def shape_modes_png(
     height_px: int = 700,
 ) -> Path:
     """PNG of shaded surfaces side by side (anterior view), one per (title, vertices, triangles, per-vertex
-    signed offset from a reference, mm), coloured by the offset (red outward), on one scale in mm."""
-    from matplotlib import cm, colormaps, colors
+    signed offset from a reference, mm), coloured by the offset (red outward), on one scale in mm: every
+    panel on the pixel grid of their common bounds, ``height_px`` tall."""
+    from matplotlib import colormaps, colors
 
     norm = colors.Normalize(vmin=-limit_mm, vmax=limit_mm)
     cmap = colormaps["RdBu_r"]
-    rasters = [render_mesh_values(v, f, d, frame, ("anterior",), height_px=height_px)[0] for _, v, f, d in panels]
-    ext = np.array([r.extent_mm for r in rasters])
+    axes_mm = screen_axes(frame, "anterior")
+    bounds = np.array([_view_bounds(np.asarray(v, dtype=np.float64), axes_mm) for _, v, _, _ in panels])
+    common = (bounds[:, 0].min(), bounds[:, 1].max(), bounds[:, 2].min(), bounds[:, 3].max())
+    pixel = (common[3] - common[2]) / height_px
+    rasters = []
+    for _, v, f, d in panels:
+        v, f = np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
+        cover = rasterise(v, f, axes_mm, pixel_mm=pixel, bounds_mm=common)
+        rasters.append(render_mesh_values(v, f, d, frame, ("anterior",), pixels=(cover,))[0])
     fig, axes = panel_figure(rasters, height_px, extra_width_px=120)
     for ax, raster, (name, *_rest) in zip(axes, rasters, panels):
-        rgb = cmap(norm(raster.values[..., 0]))[..., :3] * (0.45 + 0.55 * np.abs(raster.normal[..., 2]))[..., None]
-        rgb[~raster.mask] = 1.0
-        ax.imshow(rgb, extent=raster.extent_mm, interpolation="nearest")
-        ax.set_xlim(ext[:, 0].min(), ext[:, 1].max())
-        ax.set_ylim(ext[:, 2].min(), ext[:, 3].max())
+        ax.imshow(as_bytes(_shaded(raster, norm, cmap)), extent=raster.extent_mm, interpolation="nearest")
         ax.set_title(name, fontsize=9)
         ax.set_xticks([])
     axes[0].set_ylabel("mm (proximal up)")
-    bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), extend="both", shrink=0.8)
-    bar.set_label("offset from the mean along its normal, mm (+ = outward)")
+    _colour_bar(fig, axes, norm, cmap, "offset from the mean along its normal, mm (+ = outward)", 0.8)
     fig.suptitle(title)
     return save_figure(fig, path, palette=True)
