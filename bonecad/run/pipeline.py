@@ -10,7 +10,9 @@ the contour curves (while this process imports OpenCascade and matplotlib
 once, for every later child to inherit), the mesh's local noise and the curve
 files and the whole NURBS branch (model, analysis, figures, files) while the
 T-spline model is built here, and the T-spline model's zebra figure, continuity and colour
-map while its deviation is measured here. Every file goes through
+map while its deviation is measured here. The colour maps' pixels of the working copy are
+rasterised once, here, before the NURBS branch forks: both models colour the same mesh
+(``render.figures.mesh_views``). Every file goes through
 ``staged_output``: a failure, SIGINT or SIGTERM leaves no partial output.
 """
 from __future__ import annotations
