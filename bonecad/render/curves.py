@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.lines import Line2D
 
-from bonecad.render.figures import View, panel_figure, save_figure, render_mesh_values, screen_axes
+from bonecad.render.figures import View, as_bytes, panel_figure, save_figure, render_mesh_values, screen_axes
 from bonecad.contours.curves import ContourSet
 from bonecad.settings import load_profile
 
@@ -29,7 +29,7 @@ def curves_png(path: str | Path, vertices: np.ndarray, faces: np.ndarray, contou
         shade = 0.35 + 0.6 * np.abs(raster.normal[..., 2])
         img = np.repeat(shade[..., None], 3, axis=2)
         img[~raster.mask] = 1.0
-        ax.imshow(img, extent=raster.extent_mm, interpolation="antialiased")
+        ax.imshow(as_bytes(img), extent=raster.extent_mm, interpolation="nearest")
         screen = screen_axes(frame, view)
         h, w = raster.mask.shape
         pixel = (raster.extent_mm[3] - raster.extent_mm[2]) / h

@@ -1,10 +1,13 @@
 """Offscreen images of surfaces: deviation colour maps and zebra stripes (no display needed).
 
-Rendering is a numpy point-splatting z-buffer: the surface is sampled densely
-(several samples per pixel, area-weighted), each sample is projected
-orthographically, and the nearest sample per pixel wins. No OpenGL, no VTK, so
-it runs the same on a headless CI machine. Figures are composed with
-matplotlib's Agg backend.
+Rendering is a numpy z-buffer rasteriser: each pixel shows the nearest triangle
+whose orthographic projection contains the pixel's centre, with the centre's
+barycentric coordinates on it (exact coverage: no random samples, no pinholes,
+the same bytes for the same input). The pixels of a mesh's views
+(:class:`Coverage`, :func:`mesh_views`) hold no colour, so the colour maps of
+both models, which draw the same mesh, share them. No OpenGL, no VTK, so it runs
+the same on a headless CI machine. Figures are composed with matplotlib's Agg
+backend, each image on axes of exactly its pixels (copied, not resampled).
 
 Views are anatomical: the caller passes ``frame``, a (3, 3) rotation whose
 columns are the lateral (x), anterior (y) and proximal (z) unit axes in model
@@ -25,7 +28,6 @@ wave), so they fade to grey instead of aliasing into noise.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -35,8 +37,6 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from bonecad.staging import staged_file
-from bonecad.mesh.sampling import triangle_areas
-from bonecad.analysis.deviation import sample_surface
 from bonecad.analysis.statistics import Histogram
 from bonecad.mesh.tessellation import Tessellation
 
@@ -91,88 +91,97 @@ def to_screen(points: np.ndarray, axes: np.ndarray) -> np.ndarray:
     return np.einsum("...j,kj->...k", points, axes)
 
 
-#: the attributes of the samples at some indices (k,): their normals (k, 3) and values (k, m)
-Attributes = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+@dataclass(frozen=True)
+class Coverage:
+    """Which triangle each pixel of one view shows: the pixel grid of a triangle mesh, before any colour.
+
+    shape : (H, W) pixels; extent_mm : (left, right, bottom, top) of the pixel grid in screen mm
+    pixel : (k,) flat indices of the covered pixels, ascending; triangle : (k,) the frontmost triangle
+    at each one's centre; barycentric : (k, 3) the centre's coordinates on it; depth : (k,) mm, nearer = larger
+    """
+
+    shape: tuple[int, int]
+    extent_mm: tuple[float, float, float, float]
+    pixel: np.ndarray
+    triangle: np.ndarray
+    barycentric: np.ndarray
+    depth: np.ndarray
+
+    def raster(self, normals: np.ndarray, values: np.ndarray) -> Raster:
+        """The view with per-pixel ``normals`` (k, 3) in screen axes and ``values`` (k, m); empty pixels 0."""
+        size = self.shape[0] * self.shape[1]
+        mask = np.zeros(size, dtype=bool)
+        mask[self.pixel] = True
+        depth = np.full(size, -np.inf)
+        depth[self.pixel] = self.depth
+        vals = np.zeros((size, values.shape[1]))
+        vals[self.pixel] = values
+        nrm = np.zeros((size, 3))
+        nrm[self.pixel] = normals
+        h, w = self.shape
+        return Raster(mask.reshape(h, w), depth.reshape(h, w), vals.reshape(h, w, -1), nrm.reshape(h, w, 3),
+                      self.extent_mm)
+
+    def interpolate(self, vertex_data: np.ndarray, triangles: np.ndarray, at: np.ndarray | slice = slice(None)
+                    ) -> np.ndarray:
+        """(k, m) per-vertex ``vertex_data`` (n, m) interpolated at the covered pixels' centres (``at``: some of
+        them, indices into the k)."""
+        corners = triangles[self.triangle[at]]
+        return np.einsum("nk,nkj->nj", self.barycentric[at], vertex_data[corners])
 
 
-def splat(
-    points: np.ndarray,
-    attributes: Attributes,
-    axes: np.ndarray,
-    *,
-    pixel_mm: float,
-    bounds_mm: tuple[float, float, float, float],
-) -> Raster:
-    """Z-buffer ``points`` (N, 3) into pixels, with the normals and values of the samples that show
-    (``attributes``: computed for those only, about a fifth of the samples in each view)."""
-    s = to_screen(points, axes)
-    left, right, bottom, top = bounds_mm
-    width = int(np.ceil((right - left) / pixel_mm))
-    height = int(np.ceil((top - bottom) / pixel_mm))
-    col = np.clip(((s[:, 0] - left) / pixel_mm).astype(np.int64), 0, width - 1)
-    row = np.clip(((top - s[:, 1]) / pixel_mm).astype(np.int64), 0, height - 1)
-    pix = row * width + col
-    # z-buffer: the nearest depth per pixel, then one sample reaching it per pixel
-    # (the lowest index among exact ties); no sort of all samples
-    z = s[:, 2]
+def rasterise(vertices: np.ndarray, triangles: np.ndarray, axes: np.ndarray, *, pixel_mm: float,
+              bounds_mm: tuple[float, float, float, float]) -> Coverage:
+    """The frontmost triangle at each pixel centre of the orthographic view along ``axes`` (3, 3).
+
+    Exact coverage, no random samples: every pixel centre inside a triangle's projection (edges
+    included, within 1e-9 of a barycentric coordinate, so a shared edge leaves no pinhole) is a
+    candidate, enumerated in the triangle's pixel bounding box without a Python loop; the nearest
+    candidate per pixel wins (the lowest triangle index among exact ties: deterministic). Triangles
+    seen edge-on cover nothing (their neighbours cover the same pixels).
+    """
+    left, _, _, top = bounds_mm
+    width = int(np.ceil((bounds_mm[1] - left) / pixel_mm))
+    height = int(np.ceil((top - bounds_mm[2]) / pixel_mm))
+    s = to_screen(vertices, axes)
+    x = (s[:, 0] - left) / pixel_mm - 0.5  # pixel units, the pixel centres at integers
+    y = (top - s[:, 1]) / pixel_mm - 0.5
+    corner = np.ascontiguousarray(triangles.T)  # one contiguous column per corner: no slow (m, 3) reductions
+    x0, x1, x2 = x[corner]
+    y0, y1, y2 = y[corner]
+    c0 = np.maximum(np.ceil(np.minimum(np.minimum(x0, x1), x2)), 0).astype(np.int64)
+    c1 = np.minimum(np.floor(np.maximum(np.maximum(x0, x1), x2)), width - 1).astype(np.int64)
+    r0 = np.maximum(np.ceil(np.minimum(np.minimum(y0, y1), y2)), 0).astype(np.int64)
+    r1 = np.minimum(np.floor(np.maximum(np.maximum(y0, y1), y2)), height - 1).astype(np.int64)
+    e1x, e1y, e2x, e2y = x1 - x0, y1 - y0, x2 - x0, y2 - y0
+    det = e1x * e2y - e1y * e2x
+    nx = c1 - c0 + 1
+    count = np.where((nx > 0) & (r1 >= r0) & (det != 0.0), nx * (r1 - r0 + 1), 0)
+    live = np.flatnonzero(count)
+    count = count[live]
+    tri = np.repeat(live, count)  # one row per (triangle, pixel of its bounding box)
+    row, col = np.divmod(np.arange(tri.size) - np.repeat(np.cumsum(count) - count, count), nx[tri])
+    row += r0[tri]
+    col += c0[tri]
+    dx, dy = col - x0[tri], row - y0[tri]
+    inv = 1.0 / det[tri]
+    b1 = (dx * e2y[tri] - dy * e2x[tri]) * inv
+    b2 = (e1x[tri] * dy - e1y[tri] * dx) * inv
+    inside = np.flatnonzero((b1 >= -1e-9) & (b2 >= -1e-9) & (b1 + b2 <= 1.0 + 1e-9))
+    tri, b1, b2 = tri[inside], b1[inside], b2[inside]
+    pix = row[inside] * width + col[inside]
+    z0, z1, z2 = s[:, 2][corner]
+    z = z0[tri] + b1 * (z1 - z0)[tri] + b2 * (z2 - z0)[tri]
+    bary = np.column_stack([1.0 - b1 - b2, b1, b2])
+    # z-buffer: the nearest depth per pixel, then one candidate reaching it per pixel (the first)
     front = np.full(height * width, -np.inf)
     np.maximum.at(front, pix, z)
     reach = np.flatnonzero(z == front[pix])
     owner = np.full(height * width, len(z))
     np.minimum.at(owner, pix[reach], reach)
     first = owner[owner < len(z)]
-    mask = np.zeros(height * width, dtype=bool)
-    mask[pix[first]] = True
-    depth = np.full(height * width, -np.inf)
-    depth[pix[first]] = s[first, 2]
-    normals, values = attributes(first)
-    vals = np.zeros((height * width, values.shape[1]))
-    vals[pix[first]] = values
-    nrm = np.zeros((height * width, 3))
-    nrm[pix[first]] = to_screen(normals, axes)
-    raster = Raster(
-        mask.reshape(height, width),
-        depth.reshape(height, width),
-        vals.reshape(height, width, -1),
-        nrm.reshape(height, width, 3),
-        (left, right, bottom, top),
-    )
-    _fill_pinholes(raster)
-    _fill_pinholes(raster)
-    return raster
-
-
-def _fill_pinholes(raster: Raster) -> None:
-    """Fill uncovered pixels with at least 5 of 8 covered neighbours from the nearest neighbour, in place.
-
-    Random splatting leaves isolated empty pixels inside the surface; true
-    silhouettes have fewer covered neighbours and stay as they are. Counts in
-    uint8 over the image; the nearest neighbour is looked up at the holes only.
-    """
-    mask = raster.mask
-    padded = np.pad(mask, 1)
-    depth = np.pad(raster.depth, 1, constant_values=-np.inf)
-    h, w = mask.shape
-    shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
-    # a pixel the front surface missed shows a sample from behind: far deeper than
-    # nearly all its neighbours (10 pixels); treat it as empty too
-    pixel_mm = (raster.extent_mm[3] - raster.extent_mm[2]) / h
-    behind = raster.depth + 10 * pixel_mm
-    count = np.zeros(mask.shape, dtype=np.uint8)
-    nearer = np.zeros(mask.shape, dtype=np.uint8)
-    for dy, dx in shifts:
-        count += padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
-        nearer += depth[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] > behind
-    hole = (~mask & (count >= 5)) | (mask & (nearer >= 6))
-    if not hole.any():
-        return
-    r, c = np.nonzero(hole)
-    around = np.stack([depth[1 + dy + r, 1 + dx + c] for dy, dx in shifts], axis=1)
-    step = np.array(shifts)[np.argmax(around, axis=1)]  # the nearest neighbour (the first of equals)
-    sr, sc = r + step[:, 0], c + step[:, 1]
-    for arr in (raster.depth, raster.values, raster.normal):
-        arr[r, c] = arr[sr, sc]  # the sources read before any is written
-    raster.mask[r, c] = True
+    extent = (left, left + width * pixel_mm, top - height * pixel_mm, top)
+    return Coverage((height, width), extent, pix[first], tri[first], bary[first], z[first])
 
 
 def _view_bounds(vertices: np.ndarray, axes: np.ndarray, margin: float = 0.03):
@@ -182,10 +191,16 @@ def _view_bounds(vertices: np.ndarray, axes: np.ndarray, margin: float = 0.03):
     return (lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad)
 
 
-def _dense_samples(vertices, triangles, pixel_mm: float, per_pixel: float, seed: int, cap: int = 2_000_000):
-    areas = triangle_areas(vertices, triangles)
-    count = int(min(cap, max(10_000, per_pixel * areas.sum() / pixel_mm**2)))
-    return sample_surface(vertices, triangles, count, seed=seed, areas=areas)
+def mesh_views(vertices: np.ndarray, triangles: np.ndarray, frame: np.ndarray, views: tuple[View, ...] = VIEWS, *,
+               height_px: int = 800) -> tuple[Coverage, ...]:
+    """The pixels of a triangle mesh's ``views`` (:func:`rasterise`), the tallest ``height_px`` high: computed
+    once, coloured by any per-vertex values (both models' colour maps draw the same mesh)."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    frames = [screen_axes(frame, v) for v in views]
+    bounds = [_view_bounds(vertices, a) for a in frames]
+    pixel = min((b[3] - b[2]) / height_px for b in bounds)
+    return tuple(rasterise(vertices, triangles, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds))
 
 
 def render_mesh_values(
@@ -196,9 +211,10 @@ def render_mesh_values(
     views: tuple[View, ...] = VIEWS,
     *,
     height_px: int = 800,
-    seed: int = 0,
+    pixels: tuple[Coverage, ...] | None = None,
 ) -> list[Raster]:
-    """Views of a triangle mesh with per-vertex scalars interpolated (values[..., 0]) and shading normals."""
+    """Views of a triangle mesh with per-vertex scalars interpolated (values[..., 0]) and shading normals;
+    ``pixels``: the mesh's :func:`mesh_views` of the same ``views`` and ``height_px``, when the caller has them."""
     from bonecad.mesh.closest import vertex_normals
 
     vertices = np.asarray(vertices, dtype=np.float64)
@@ -206,18 +222,16 @@ def render_mesh_values(
     vertex_values = np.asarray(vertex_values, dtype=np.float64)
     if vertex_values.shape != (len(vertices),):
         raise ValueError(f"vertex_values must be ({len(vertices)},), got {vertex_values.shape}")
-    frames = [screen_axes(frame, v) for v in views]
-    bounds = [_view_bounds(vertices, a) for a in frames]
-    pixel = min((b[3] - b[2]) / height_px for b in bounds)
-    samples = _dense_samples(vertices, triangles, pixel, 2.0, seed)
+    if pixels is None:
+        pixels = mesh_views(vertices, triangles, frame, views, height_px=height_px)
+    elif len(pixels) != len(views):
+        raise ValueError(f"pixels of {len(pixels)} views for {len(views)} views")
     vn = vertex_normals(vertices, triangles)
-
-    def attributes(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        tri, bary = triangles[samples.triangle[index]], samples.barycentric[index]
-        return (np.einsum("nk,nkj->nj", bary, vn[tri]),
-                np.einsum("nk,nk->n", bary, vertex_values[tri])[:, None])
-
-    return [splat(samples.points, attributes, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
+    rasters = []
+    for view, cover in zip(views, pixels):
+        normals = to_screen(cover.interpolate(vn, triangles), screen_axes(frame, view))
+        rasters.append(cover.raster(normals, cover.interpolate(vertex_values[:, None], triangles)))
+    return rasters
 
 
 def render_tessellation_normals(
@@ -226,72 +240,39 @@ def render_tessellation_normals(
     views: tuple[View, ...] = VIEWS,
     *,
     height_px: int = 800,
-    seed: int = 0,
 ) -> list[Raster]:
     """Views of a tessellated shape with exact surface normals at the pixel centres (for zebra).
 
-    The tessellation is splatted with each sample's face and triangle; per
-    visible pixel (not per sample: about half the samples end up hidden) the
-    (u, v) of the pixel's centre is interpolated on that triangle and the
-    exact normal evaluated there: the normals do not jitter with the samples'
-    random places inside the pixels, so stripe edges stay smooth.
+    Each pixel centre's (u, v) is interpolated on the triangle it shows (the triangle lies within the
+    chord error, 0.05 mm, of the surface) and the exact normal evaluated there, so stripe edges stay
+    smooth across the triangles; a face without a spline surface keeps the interpolated node normals.
     values = (face index, u, v, triangle index).
     """
-    frames = [screen_axes(frame, v) for v in views]
-    bounds = [_view_bounds(tess.vertices, a) for a in frames]
-    pixel = min((b[3] - b[2]) / height_px for b in bounds)
-    samples = _dense_samples(tess.vertices, tess.triangles, pixel, 2.0, seed)
-
-    def attributes(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        triangle, bary = samples.triangle[index], samples.barycentric[index]
-        tri = tess.triangles[triangle]
-        normals = np.einsum("nk,nkj->nj", bary, tess.normals[tri])
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)  # kept where no surface
-        uv = np.einsum("nk,nkj->nj", bary, tess.uv[tri])
-        return normals, np.column_stack([tess.triangle_face[triangle].astype(float), uv, triangle.astype(float)])
-
-    rasters = [splat(samples.points, attributes, a, pixel_mm=pixel, bounds_mm=b) for a, b in zip(frames, bounds)]
-    for raster, axes in zip(rasters, frames):
-        _exact_normals(raster, axes, tess)
-    return rasters
-
-
-def _exact_normals(raster: Raster, axes: np.ndarray, tess: Tessellation) -> None:
-    """Replace the raster's normals and (u, v) by the exact surface's at the pixel centres, in place.
-
-    The centre's (u, v): its barycentric coordinates in the screen projection of the sample's triangle
-    applied to the triangle's nodes' (u, v) (the triangle lies within the chord error, 0.05 mm, of the
-    surface); a triangle seen edge-on, or a centre more than a triangle away, keeps the sample's (u, v).
-    """
     sset = tess.packed_surfaces
-    rows, cols = np.nonzero(raster.mask)
-    pix_face = raster.values[rows, cols, 0].astype(np.int64)
-    has = np.flatnonzero(sset.group[pix_face] >= 0)
-    rows, cols, f = rows[has], cols[has], pix_face[has]
-    corners = tess.triangles[raster.values[rows, cols, 3].astype(np.int64)]
-    left, right, bottom, top = raster.extent_mm
-    h, w = raster.mask.shape
-    centre = np.column_stack([left + (cols + 0.5) * (right - left) / w, top - (rows + 0.5) * (top - bottom) / h])
-    p = to_screen(tess.vertices[corners], axes[:2])  # (k, 3, 2) screen mm
-    e1, e2, d = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], centre - p[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    scale = np.sum(e1**2, axis=1) + np.sum(e2**2, axis=1)
-    safe = np.where(np.abs(det) > 1e-6 * scale, det, np.inf)
-    b1 = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / safe
-    b2 = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / safe
-    bary = np.column_stack([1.0 - b1 - b2, b1, b2])
-    near = np.isfinite(safe) & (bary.min(axis=1) > -1.0) & (bary.max(axis=1) < 2.0)
-    uv = np.einsum("nk,nkj->nj", bary, tess.uv[corners])
-    lo_u, hi_u, lo_v, hi_v = sset.bounds[f].T
-    u = np.where(near, np.clip(uv[:, 0], lo_u, hi_u), raster.values[rows, cols, 1])
-    v = np.where(near, np.clip(uv[:, 1], lo_v, hi_v), raster.values[rows, cols, 2])
-    sample = sset.evaluate(f, u, v, order=1)
-    n = np.cross(sample.du, sample.dv)
-    size = np.linalg.norm(n, axis=1, keepdims=True)
-    good = size[:, 0] > 1e-12
-    n = np.where(tess.reversed_faces[f][:, None], -n, n) / np.maximum(size, 1e-300)
-    raster.normal[rows[good], cols[good]] = to_screen(n[good], axes)
-    raster.values[rows, cols, 1], raster.values[rows, cols, 2] = u, v
+    rasters = []
+    for view, cover in zip(views, mesh_views(tess.vertices, tess.triangles, frame, views, height_px=height_px)):
+        axes = screen_axes(frame, view)
+        face = tess.triangle_face[cover.triangle]
+        uv = cover.interpolate(tess.uv, tess.triangles)
+        exact = np.flatnonzero(sset.group[face] >= 0)
+        f = face[exact]
+        lo_u, hi_u, lo_v, hi_v = sset.bounds[f].T
+        uv[exact, 0] = np.clip(uv[exact, 0], lo_u, hi_u)
+        uv[exact, 1] = np.clip(uv[exact, 1], lo_v, hi_v)
+        sample = sset.evaluate(f, uv[exact, 0], uv[exact, 1], order=1)
+        n = np.cross(sample.du, sample.dv)
+        size = np.linalg.norm(n, axis=1, keepdims=True)
+        good = size[:, 0] > 1e-12
+        normals = np.zeros((len(face), 3))
+        normals[exact[good]] = np.where(tess.reversed_faces[f[good]][:, None], -n[good], n[good]) / size[good]
+        # the node normals, interpolated, where there is no surface or its normal vanishes (an apex)
+        rest = np.ones(len(face), dtype=bool)
+        rest[exact[good]] = False
+        near = cover.interpolate(tess.normals, tess.triangles, np.flatnonzero(rest))
+        normals[rest] = near / np.maximum(np.linalg.norm(near, axis=1, keepdims=True), 1e-300)
+        values = np.column_stack([face.astype(float), uv, cover.triangle.astype(float)])
+        rasters.append(cover.raster(to_screen(normals, axes), values))
+    return rasters
 
 
 def _square_wave_integral(phase: np.ndarray) -> np.ndarray:
@@ -324,43 +305,57 @@ def zebra_image(raster: Raster, *, stripes: int = 40, stripe_axis: str = "horizo
     ``stripe_axis``: 'horizontal' light bands run left-right (reflect about the
     screen up axis), 'vertical' run top-bottom.
     """
-    n = raster.normal
+    mask = raster.mask
+    rows, cols = np.nonzero(mask)  # the covered pixels only (about a third of the image)
+    n = raster.normal[rows, cols]
+    depth = raster.depth[rows, cols]
     # a perspective eye in front of the object (2x its height away), so the
     # reflections vary across flat regions too and stripes are dense
     left, right, bottom, top = raster.extent_mm
-    h, w = raster.mask.shape
-    xs = left + (np.arange(w) + 0.5) * (right - left) / w
-    ys = top - (np.arange(h) + 0.5) * (top - bottom) / h
-    depth = np.where(raster.mask, raster.depth, 0.0)
-    eye = np.array([(left + right) / 2, (bottom + top) / 2, depth[raster.mask].max(initial=0.0) + 2 * (top - bottom)])
-    view = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], depth), axis=-1) - eye
-    view /= np.maximum(np.linalg.norm(view, axis=-1, keepdims=True), 1e-300)
-    r = view - 2.0 * np.sum(n * view, axis=-1)[..., None] * n
-    axis = np.array([0.0, 1.0, 0.0]) if stripe_axis == "horizontal" else np.array([1.0, 0.0, 0.0])
-    phase = stripes * np.arccos(np.clip(np.einsum("...j,j->...", r, axis), -1.0, 1.0)) / np.pi
+    h, w = mask.shape
+    eye = np.array([(left + right) / 2, (bottom + top) / 2, depth.max(initial=0.0) + 2 * (top - bottom)])
+    view = np.column_stack([left + (cols + 0.5) * (right - left) / w, top - (rows + 0.5) * (top - bottom) / h,
+                            depth]) - eye
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-300)
+    r = view - 2.0 * np.einsum("nj,nj->n", n, view)[:, None] * n
+    along = r[:, 1] if stripe_axis == "horizontal" else r[:, 0]
+    phase = np.zeros(mask.shape)
+    phase[rows, cols] = stripes * np.arccos(np.clip(along, -1.0, 1.0)) / np.pi
     # the mean of the band pattern over the pixel's footprint [phase - w/2, phase + w/2]
-    width = np.maximum(_footprint(phase, raster.mask), 1e-6)
-    light = (_square_wave_integral(phase + width / 2) - _square_wave_integral(phase - width / 2)) / width
-    shade = 0.55 + 0.45 * np.abs(n[..., 2])
-    grey = (0.08 + 0.87 * light) * shade
-    img = np.repeat(grey[..., None], 3, axis=2)
-    img[~raster.mask] = 1.0
+    width = np.maximum(_footprint(phase, mask)[rows, cols], 1e-6)
+    centre = phase[rows, cols]
+    light = (_square_wave_integral(centre + width / 2) - _square_wave_integral(centre - width / 2)) / width
+    shade = 0.55 + 0.45 * np.abs(n[:, 2])
+    img = np.ones((h, w, 3))
+    img[rows, cols] = ((0.08 + 0.87 * light) * shade)[:, None]
     return img
 
 
 def panel_figure(rasters: list[Raster], height_px: int, extra_width_px: int = 0):
     """A matplotlib Figure outside pyplot (Jupyter's inline plots keep working) with one panel per
-    raster, side by side, each panel's width in proportion to its image so the images show at about
-    their own pixels (``height_px`` tall); ``extra_width_px`` of room on the right (a colour bar)."""
+    raster, side by side, each panel's axes exactly its image's pixels (``height_px`` tall), so an image
+    drawn with interpolation "nearest" keeps its own pixels (no resampling filter to pay for or blur
+    with); ``extra_width_px`` of room on the right (a colour bar)."""
     dpi = 100
     widths = [r.mask.shape[1] for r in rasters]
-    margin_px = 140  # axis labels and ticks, per panel
-    width_px = sum(widths) + margin_px * len(rasters) + extra_width_px + 80
-    fig = Figure(figsize=(width_px / dpi, (height_px + 230) / dpi), dpi=dpi)
-    axes = fig.subplots(1, len(rasters), gridspec_kw={"width_ratios": widths})
-    fig.subplots_adjust(left=0.05, right=1.0 - (extra_width_px + 40) / width_px, top=1 - 110 / (height_px + 230),
-                        bottom=90 / (height_px + 230), wspace=0.25)
-    return fig, list(np.atleast_1d(axes))
+    left_px, gap_px, bottom_px = 120, 100, 105  # axis labels and ticks
+    width_px = sum(widths) + 140 * len(rasters) + extra_width_px + 80  # 140 px a panel: the earlier sizes
+    fig_height_px = height_px + 230
+    fig = Figure(figsize=(width_px / dpi, fig_height_px / dpi), dpi=dpi)
+    axes, x = [], left_px
+    for raster, w in zip(rasters, widths):
+        box = (x / width_px, bottom_px / fig_height_px, w / width_px, raster.mask.shape[0] / fig_height_px)
+        axes.append(fig.add_axes(box))
+        x += w + gap_px
+    return fig, axes
+
+
+def as_bytes(image: np.ndarray) -> np.ndarray:
+    """(H, W, 4) uint8 RGBA, opaque, of an (H, W, 3) RGB image in [0, 1], truncated as matplotlib converts
+    float images (the same colours); matplotlib copies such an image at 1:1 in a third of the time of a float one."""
+    rgba = np.full((*image.shape[:2], 4), 255, dtype=np.uint8)
+    rgba[..., :3] = np.clip(image, 0.0, 1.0) * 255
+    return rgba
 
 
 def save_figure(fig, path: str | Path, *, palette: bool = False) -> Path:
@@ -387,10 +382,31 @@ def save_figure(fig, path: str | Path, *, palette: bool = False) -> Path:
 
 def _colour_panels(axes, rasters: list[Raster], views, images: list[np.ndarray]) -> None:
     for ax, raster, name, img in zip(axes, rasters, views, images):
-        ax.imshow(img, extent=raster.extent_mm, interpolation="antialiased")
+        ax.imshow(as_bytes(img), extent=raster.extent_mm, interpolation="nearest")
         ax.set_title(name)
         ax.set_xlabel("mm")
     axes[0].set_ylabel("mm (proximal up)")
+
+
+def _shaded(raster: Raster, norm, cmap) -> np.ndarray:
+    """(H, W, 3) RGB in [0, 1]: ``values[..., 0]`` through ``cmap`` after ``norm``, shaded by the normal's
+    z (0.45 edge-on to 1 facing the viewer); white where nothing is drawn."""
+    covered = raster.mask
+    rgb = np.ones((*covered.shape, 3))
+    shade = 0.45 + 0.55 * np.abs(raster.normal[covered, 2])
+    rgb[covered] = cmap(norm(raster.values[covered, 0]))[:, :3] * shade[:, None]
+    return rgb
+
+
+def _colour_bar(fig, axes, norm, cmap, label: str, length: float) -> None:
+    """A colour bar 100 px right of the last panel, 56 px wide, ``length`` of the panels' height: an axes
+    of its own, not room taken from the panels (they keep their 1:1 pixels)."""
+    from matplotlib import cm
+
+    left, bottom, width, height = axes[-1].get_position().bounds
+    fig_w = fig.get_figwidth() * fig.dpi
+    cax = fig.add_axes((left + width + 100 / fig_w, bottom + (1 - length) / 2 * height, 56 / fig_w, length * height))
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax, extend="both").set_label(label)
 
 
 def deviation_map_png(
@@ -403,31 +419,27 @@ def deviation_map_png(
     limit_mm: float | None = None,
     title: str = "Deviation (mesh - CAD), mm",
     height_px: int = 1600,
+    pixels: tuple[Coverage, ...] | None = None,
 ) -> Path:
     """PNG of the mesh coloured by signed deviation from the four :data:`VIEWS`, ``height_px`` tall,
-    with a colour bar in mm.
+    with a colour bar in mm; ``pixels``: the mesh's :func:`mesh_views` (four views, ``height_px``), when
+    the caller has them (both models' maps colour the same mesh).
 
     Diverging map (red = mesh outside the CAD model, blue = inside), symmetric
     about 0, clipped at ``limit_mm`` (default: the 99th percentile of
     |deviation| rounded up to 0.05 mm, at least 0.05 mm).
     """
-    from matplotlib import cm, colormaps, colors
+    from matplotlib import colormaps, colors
 
     d = np.asarray(vertex_deviation_mm, dtype=np.float64)
     if limit_mm is None:
         limit_mm = max(0.05, np.ceil(np.percentile(np.abs(d), 99) / 0.05) * 0.05)
-    rasters = render_mesh_values(vertices, triangles, d, frame, VIEWS, height_px=height_px)
+    rasters = render_mesh_values(vertices, triangles, d, frame, VIEWS, height_px=height_px, pixels=pixels)
     norm = colors.Normalize(vmin=-limit_mm, vmax=limit_mm)
     cmap = colormaps["RdBu_r"]
-    images = []
-    for raster in rasters:
-        rgb = cmap(norm(raster.values[..., 0]))[..., :3] * (0.45 + 0.55 * np.abs(raster.normal[..., 2]))[..., None]
-        rgb[~raster.mask] = 1.0
-        images.append(rgb)
     fig, axes = panel_figure(rasters, height_px, extra_width_px=220)
-    _colour_panels(axes, rasters, VIEWS, images)
-    bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, extend="both", shrink=0.7, fraction=0.03)
-    bar.set_label("signed deviation, mm (+ = mesh outside the CAD model)")
+    _colour_panels(axes, rasters, VIEWS, [_shaded(r, norm, cmap) for r in rasters])
+    _colour_bar(fig, axes, norm, cmap, "signed deviation, mm (+ = mesh outside the CAD model)", 0.7)
     fig.suptitle(title)
     return save_figure(fig, path, palette=True)
 
@@ -508,24 +520,27 @@ def shape_modes_png(
     height_px: int = 700,
 ) -> Path:
     """PNG of shaded surfaces side by side (anterior view), one per (title, vertices, triangles, per-vertex
-    signed offset from a reference, mm), coloured by the offset (red outward), on one scale in mm."""
-    from matplotlib import cm, colormaps, colors
+    signed offset from a reference, mm), coloured by the offset (red outward), on one scale in mm: every
+    panel on the pixel grid of their common bounds, ``height_px`` tall."""
+    from matplotlib import colormaps, colors
 
     norm = colors.Normalize(vmin=-limit_mm, vmax=limit_mm)
     cmap = colormaps["RdBu_r"]
-    rasters = [render_mesh_values(v, f, d, frame, ("anterior",), height_px=height_px)[0] for _, v, f, d in panels]
-    ext = np.array([r.extent_mm for r in rasters])
+    axes_mm = screen_axes(frame, "anterior")
+    bounds = np.array([_view_bounds(np.asarray(v, dtype=np.float64), axes_mm) for _, v, _, _ in panels])
+    common = (bounds[:, 0].min(), bounds[:, 1].max(), bounds[:, 2].min(), bounds[:, 3].max())
+    pixel = (common[3] - common[2]) / height_px
+    rasters = []
+    for _, v, f, d in panels:
+        v, f = np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
+        cover = rasterise(v, f, axes_mm, pixel_mm=pixel, bounds_mm=common)
+        rasters.append(render_mesh_values(v, f, d, frame, ("anterior",), pixels=(cover,))[0])
     fig, axes = panel_figure(rasters, height_px, extra_width_px=120)
     for ax, raster, (name, *_rest) in zip(axes, rasters, panels):
-        rgb = cmap(norm(raster.values[..., 0]))[..., :3] * (0.45 + 0.55 * np.abs(raster.normal[..., 2]))[..., None]
-        rgb[~raster.mask] = 1.0
-        ax.imshow(rgb, extent=raster.extent_mm, interpolation="nearest")
-        ax.set_xlim(ext[:, 0].min(), ext[:, 1].max())
-        ax.set_ylim(ext[:, 2].min(), ext[:, 3].max())
+        ax.imshow(as_bytes(_shaded(raster, norm, cmap)), extent=raster.extent_mm, interpolation="nearest")
         ax.set_title(name, fontsize=9)
         ax.set_xticks([])
     axes[0].set_ylabel("mm (proximal up)")
-    bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), extend="both", shrink=0.8)
-    bar.set_label("offset from the mean along its normal, mm (+ = outward)")
+    _colour_bar(fig, axes, norm, cmap, "offset from the mean along its normal, mm (+ = outward)", 0.8)
     fig.suptitle(title)
     return save_figure(fig, path, palette=True)

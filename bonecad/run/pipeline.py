@@ -10,7 +10,9 @@ the contour curves (while this process imports OpenCascade and matplotlib
 once, for every later child to inherit), the mesh's local noise and the curve
 files and the whole NURBS branch (model, analysis, figures, files) while the
 T-spline model is built here, and the T-spline model's zebra figure, continuity and colour
-map while its deviation is measured here. Every file goes through
+map while its deviation is measured here. The colour maps' pixels of the working copy are
+rasterised once, here, before the NURBS branch forks: both models colour the same mesh
+(``render.figures.mesh_views``). Every file goes through
 ``staged_output``: a failure, SIGINT or SIGTERM leaves no partial output.
 """
 from __future__ import annotations
@@ -48,6 +50,7 @@ from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
 
 if TYPE_CHECKING:
+    from bonecad.render.figures import Coverage
     from bonecad.tspline_model.model import MeshNoise
 
 log = logging.getLogger(__name__)
@@ -306,8 +309,17 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
     for name, summary in contours.summary().items():
         log.info("%s: %d curves, worst deviation %.3f mm (tolerance %s mm, %d within)", name, summary["curves"],
                  summary["worst_max_deviation_mm"], summary["tolerance_mm"], summary["within_tolerance"])
+    pixels = None
+    if models:
+        from bonecad.render.figures import VIEWS, mesh_views
+
+        # the working copy's pixels in the colour maps' views, once for both models (their maps differ in
+        # colour only); here, before the NURBS job forks and inherits them, while the noise job runs
+        with timings.stage("colour map pixels"):
+            pixels = mesh_views(bone.work.vertices, bone.work.faces, frame.axes.T, VIEWS,
+                                height_px=settings.analysis.figure_height_px)
     # the second core: curves.step/.iges/.png, then the NURBS model, its analysis, figures and files
-    side = ex.submit(curve_files_and_nurbs, contours, bone, stage_dir, settings, "nurbs" in models)
+    side = ex.submit(curve_files_and_nurbs, contours, bone, stage_dir, settings, "nurbs" in models, pixels)
     export("curves", contours, stage_dir, only=["json"])
     built: dict[str, object] = {}
     reports: dict[str, ModelReport] = {}
@@ -324,7 +336,7 @@ def _curves_and_models(bone: BoneMesh, frame: AnatomicalFrame, contours: Contour
         with timings.stage("T-spline analysis"):
             reports["tspline"], views["tspline"] = analyse(
                 "tspline", model, bone, frame, stage_dir, settings,
-                {"faces": len(model.face_names), **model.summary()}, ex)
+                {"faces": len(model.face_names), **model.summary()}, ex, pixels)
         built["tspline"] = model
     with timings.stage("waiting for the second core"):
         side_timings, nurbs = side.result()
@@ -373,9 +385,11 @@ def mesh_noise(bone: BoneMesh, frame: AnatomicalFrame, settings: Settings) -> Me
 
 
 def curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path, settings: Settings,
-                          nurbs: bool) -> tuple[dict[str, float], tuple[object, ModelReport, ViewMesh] | None]:
+                          nurbs: bool, pixels: tuple[Coverage, ...] | None = None
+                          ) -> tuple[dict[str, float], tuple[object, ModelReport, ViewMesh] | None]:
     """curves.step, curves.iges, curves.png, then (``nurbs``) the NURBS model, its files, analysis and
-    figures, all in this process. Returns (stage timings, (model, report) or None)."""
+    figures, all in this process (``pixels``: see :func:`analyse`). Returns (stage timings, (model, report) or
+    None)."""
     from bonecad.nurbs_model.model import build_nurbs
     from bonecad.render.curves import curves_png
 
@@ -391,15 +405,16 @@ def curve_files_and_nurbs(contours: ContourSet, bone: BoneMesh, stage_dir: Path,
         export("nurbs", model, stage_dir)
     with timings.stage("NURBS analysis"):
         report, view = analyse("nurbs", model, bone, contours.frame, stage_dir, settings, model.summary(),
-                               InProcess())
+                               InProcess(), pixels)
     return timings.seconds, (model, report, view)
 
 
 def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: Path, settings: Settings,
-            info: dict, ex: Executor) -> tuple[ModelReport, ViewMesh]:
+            info: dict, ex: Executor, pixels: tuple[Coverage, ...] | None = None) -> tuple[ModelReport, ViewMesh]:
     """Deviation, continuity and the figures ``{name}_deviation.png`` and ``{name}_zebra.png`` of one
     model, and its mesh for the 3-D view; zebra and continuity, the colour map and the view's mesh as
-    background jobs."""
+    background jobs. ``pixels``: the working copy's colour-map views (``render.figures.mesh_views``), shared
+    by the models (None: the colour map rasterises the mesh itself)."""
     from bonecad.render.figures import deviation_map_png
 
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
@@ -412,7 +427,7 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     colour_map = ex.submit(deviation_map_png, out_dir / f"{name}_deviation.png", shown.vertices, shown.faces,
                            deviation.vertex_deviation_mm, view_frame,
                            title=f"{name}: deviation of the mesh from the CAD model, mm",
-                           height_px=settings.analysis.figure_height_px)
+                           height_px=settings.analysis.figure_height_px, pixels=pixels)
     zebra, (continuity, knots) = side.result()
     figures = {"deviation": colour_map.result(), "zebra": zebra}
     report = ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots,
