@@ -77,10 +77,15 @@ def merge_duplicate_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[n
     """Vertices with exactly equal coordinates merged into the first of them (the others dropped, the order
     kept, as MeshLab's ``meshing_remove_duplicate_vertices``); returns (vertices, faces re-indexed)."""
     vertices = np.ascontiguousarray(vertices) + 0.0  # -0.0 -> 0.0: equal coordinates, equal bits
-    first_of = first_of_equal_rows(vertices)
-    keep = first_of == np.arange(len(vertices))
-    new_index = np.cumsum(keep) - 1
-    return vertices[keep], new_index[first_of][faces]
+    order, starts = _equal_row_groups(vertices)
+    n = len(vertices)
+    index = np.int32 if n < np.iinfo(np.int32).max else np.int64  # (half the memory traffic)
+    firsts = order[starts]  # each group's first vertex
+    keep = np.zeros(n, dtype=bool)
+    keep[firsts] = True
+    merged = np.empty(n, dtype=index)
+    merged[order] = np.repeat((np.cumsum(keep, dtype=index) - 1)[firsts], np.diff(np.r_[starts, n]))
+    return vertices[keep], merged[faces].astype(np.int64)
 
 
 def merge_close_vertices(vertices: np.ndarray, faces: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
