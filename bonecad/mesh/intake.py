@@ -265,6 +265,11 @@ def _detect_scale(length: float, width: float, units: Units, path: Path | None,
     )
 
 
+def _scaled(vertices: np.ndarray, scale: float) -> np.ndarray:
+    """``vertices * scale``, or ``vertices`` themselves in mm already (no copy of a dense mesh)."""
+    return vertices if scale == 1.0 else vertices * scale
+
+
 def load_bone(
     path: str | Path,
     *,
@@ -282,9 +287,8 @@ def load_bone(
     Raises InputError (naming the file) for unreadable files, wrong units, a
     tibia broken into pieces, or a bone fused to a neighbouring bone.
     """
-    vertices, faces = read_mesh_file(path)
-    return prepare_bone(vertices, faces, source=path, units=units, settings=settings, plausible=plausible, keep=keep,
-                        working_copy=working_copy)
+    return prepare_bone(*read_mesh_file(path), source=path, units=units, settings=settings,  # (arrays not held)
+                        plausible=plausible, keep=keep, working_copy=working_copy)
 
 
 def prepare_bone(
@@ -306,7 +310,7 @@ def prepare_bone(
     path = Path(source) if source else None
     vertices, faces, edges, area, repairs = _clean(vertices, faces, settings.max_hole_edges)
     bodies = _bodies(vertices, faces, edges, area)
-    del area
+    del vertices, faces, edges, area  # (the bodies hold their own arrays: 0.6 GB less for the copy at 8 M triangles)
     if not bodies or bodies[0].volume <= 0:
         raise InputError("has no closed body with a volume", path)
 
@@ -318,7 +322,7 @@ def prepare_bone(
     length_range = (float(plausible.tibia_length_mm[0]), float(plausible.tibia_length_mm[1]))
     t = choose_tibia(shapes, settings, length_range)
     tibia = bodies[t]
-    bone = working_copy(BoneMesh(vertices=tibia.vertices * scale, faces=tibia.faces, source=str(source),
+    bone = working_copy(BoneMesh(vertices=_scaled(tibia.vertices, scale), faces=tibia.faces, source=str(source),
                                       units="mm", watertight=tibia.watertight), settings,
                              area_mm2=tibia.area * scale**2)
     work = bone.work  # the anatomy is read on the working copy
@@ -331,7 +335,7 @@ def prepare_bone(
         roles[k] = "femur"
         if k != t:
             kept = bodies[k]
-            bone = working_copy(BoneMesh(vertices=kept.vertices * scale, faces=kept.faces, source=str(source),
+            bone = working_copy(BoneMesh(vertices=_scaled(kept.vertices, scale), faces=kept.faces, source=str(source),
                                               units="mm", watertight=kept.watertight), settings,
                                      area_mm2=kept.area * scale**2)
             work = bone.work

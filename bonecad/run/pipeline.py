@@ -177,9 +177,10 @@ def copy_beside_tree(ex: Executor) -> Callable[..., BoneMesh]:
         targets = pass_targets(target, bone.triangle_count, settings.working_pass_reduction) if target else []
         first = None
         if len(targets) > 1:
-            (va, fa, ta), (vb, fb, tb) = halves(bone.vertices, bone.faces, targets[0])
-            half = ex.submit(simplified_once, va, fa, ta, keep_border=True)
-            other = simplified_once(vb, fb, tb, keep_border=True)
+            parts = halves(bone.vertices, bone.faces, targets[0])
+            half = ex.submit(simplified_once, *parts[0], keep_border=True)
+            other = simplified_once(*parts[1], keep_border=True)
+            del parts  # (not held through the tree's build)
             first = joined(half.result(), other)
         job = ex.submit(working_copy_alone, bone, settings, area_mm2, first)
         _ = bone.locator
