@@ -33,15 +33,20 @@ def test_merge_matches_meshlab(phantom):
 
 
 def test_equal_rows_exact_under_hash_collisions(monkeypatch):
-    """Rows grouped by their hash are regrouped exactly where hashes collide (here: every hash 0)."""
+    """Rows grouped by their hash are regrouped exactly where hashes collide (here: every hash 0), and
+    vertices merged exactly (the first of each, in input order)."""
     from bonecad.mesh import topology
 
     rng = np.random.default_rng(1)
-    rows = rng.integers(0, 40, (500, 3)).astype(np.float32)[rng.integers(0, 500, 5000)]
+    rows = rng.integers(0, 40, (500, 3)).astype(np.float32)[rng.integers(0, 500, 6000)]
     _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
-    assert np.array_equal(topology.first_of_equal_rows(rows), first[inverse.ravel()])
-    monkeypatch.setattr(topology, "_WORD_MIX", np.zeros(6, dtype=np.uint64))
-    assert np.array_equal(topology.first_of_equal_rows(rows), first[inverse.ravel()])
+    firsts = np.sort(first)
+    expected = (rows[firsts], np.searchsorted(firsts, first[inverse.ravel()]).reshape(-1, 3))
+    for mix in (topology._WORD_MIX, np.zeros(6, dtype=np.uint64)):
+        monkeypatch.setattr(topology, "_WORD_MIX", mix)
+        assert np.array_equal(topology.first_of_equal_rows(rows), first[inverse.ravel()])
+        vertices, faces = merge_duplicate_vertices(rows, np.arange(len(rows)).reshape(-1, 3))
+        assert np.array_equal(vertices, expected[0]) and np.array_equal(faces, expected[1])
 
 
 def test_edges_fans_and_duplicates():
