@@ -27,6 +27,25 @@ def test_ascii_stl(phantom, tmp_path):
     assert bonecad.load_bone(path).triangle_count == phantom.triangle_count
 
 
+def test_binary_stl_read_as_trimesh_reads_it(phantom, tmp_path):
+    """A binary STL is read without trimesh into trimesh's arrays (a corner per vertex, float32); an ASCII STL
+    goes to trimesh's reader."""
+    from trimesh.exchange.load import mesh_loaders
+
+    from bonecad.mesh.intake import _binary_stl
+
+    path = tmp_path / "binary.stl"
+    phantom.to_trimesh().export(path)
+    vertices, faces = _binary_stl(path)
+    with open(path, "rb") as file:
+        loaded = mesh_loaders["stl"](file, file_type="stl")
+    assert vertices.dtype == np.float32 and np.array_equal(vertices, np.asarray(loaded["vertices"]).reshape(-1, 3))
+    assert np.array_equal(faces, loaded["faces"])
+    ascii_path = tmp_path / "ascii.stl"
+    ascii_path.write_bytes(trimesh.exchange.stl.export_stl_ascii(phantom.to_trimesh()).encode())
+    assert _binary_stl(ascii_path) is None
+
+
 def _write(tmp_path, name, content: bytes):
     path = tmp_path / name
     path.write_bytes(content)

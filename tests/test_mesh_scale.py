@@ -33,15 +33,20 @@ def test_merge_matches_meshlab(phantom):
 
 
 def test_equal_rows_exact_under_hash_collisions(monkeypatch):
-    """Rows grouped by their hash are regrouped exactly where hashes collide (here: every hash 0)."""
+    """Rows grouped by their hash are regrouped exactly where hashes collide (here: every hash 0), and
+    vertices merged exactly (the first of each, in input order)."""
     from bonecad.mesh import topology
 
     rng = np.random.default_rng(1)
-    rows = rng.integers(0, 40, (500, 3)).astype(np.float32)[rng.integers(0, 500, 5000)]
+    rows = rng.integers(0, 40, (500, 3)).astype(np.float32)[rng.integers(0, 500, 6000)]
     _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
-    assert np.array_equal(topology.first_of_equal_rows(rows), first[inverse.ravel()])
-    monkeypatch.setattr(topology, "_WORD_MIX", np.zeros(6, dtype=np.uint64))
-    assert np.array_equal(topology.first_of_equal_rows(rows), first[inverse.ravel()])
+    firsts = np.sort(first)
+    expected = (rows[firsts], np.searchsorted(firsts, first[inverse.ravel()]).reshape(-1, 3))
+    for mix in (topology._WORD_MIX, np.zeros(6, dtype=np.uint64)):
+        monkeypatch.setattr(topology, "_WORD_MIX", mix)
+        assert np.array_equal(topology.first_of_equal_rows(rows), first[inverse.ravel()])
+        vertices, faces = merge_duplicate_vertices(rows, np.arange(len(rows)).reshape(-1, 3))
+        assert np.array_equal(vertices, expected[0]) and np.array_equal(faces, expected[1])
 
 
 def test_edges_fans_and_duplicates():
@@ -57,6 +62,29 @@ def test_edges_fans_and_duplicates():
     pinched = np.vstack([faces, other])
     assert non_manifold_vertices(pinched, edge_counts(pinched, 2 * len(sphere.vertices))) == 1
     assert duplicate_faces(np.vstack([faces, faces[5, [1, 2, 0]]])).tolist() == [False] * len(faces) + [True]
+
+
+def test_edge_counts_against_their_definition():
+    """Each edge's faces, its first two half-edges (increasing) and its orientation, as counted one half-edge at
+    a time; the same whether the half-edges' indices fit under the keys (a plain sort) or not (an argsort)."""
+    sphere = trimesh.creation.icosphere(2)
+    faces = np.asarray(sphere.faces)
+    faces = np.vstack([faces[3:], faces[[5, 9]]])  # a hole, edges of three faces
+    faces[40] = faces[40, ::-1]  # turned over
+    n = len(sphere.vertices)
+    halves: dict[tuple[int, int], list[int]] = {}
+    for h, (a, b) in enumerate(zip(faces.ravel(), faces[:, [1, 2, 0]].ravel())):
+        halves.setdefault((min(a, b), max(a, b)), []).append(h)
+    pairs = sorted(halves)
+    for vertex_count in (n, 2**31):  # 2^31: keys of 62 bits, no room for the index
+        edges = edge_counts(faces, vertex_count)
+        assert [(int(k // vertex_count), int(k % vertex_count)) for k in edges.keys] == pairs
+        assert edges.faces_per_edge.tolist() == [len(halves[p]) for p in pairs]
+        assert edges.half_edges.tolist() == [[halves[p][0], halves[p][min(1, len(halves[p]) - 1)]] for p in pairs]
+        forward = faces.ravel() < faces[:, [1, 2, 0]].ravel()
+        assert edges.consistent.tolist() == [len(halves[p]) != 2 or forward[halves[p][0]] != forward[halves[p][1]]
+                                             for p in pairs]
+    assert edges.border_edges > 0 and edges.non_manifold_edges > 0 and not edges.consistent.all()
 
 
 def test_pinched_mesh_goes_to_meshlab(phantom, tmp_path):
@@ -112,27 +140,32 @@ def test_deviation_is_measured_against_the_full_mesh(dense, phantom, phantom_fra
 
 def test_simplified_in_passes(dense, monkeypatch):
     """The working copy's simplifier works in passes of at most ``working_pass_reduction`` times fewer triangles
-    each, the last to the count asked; the result is closed and close to the mesh."""
+    each, the last to the count asked, the first on the mesh's two halves apart (their cut kept); the result is
+    closed and close to the mesh."""
     import fast_simplification
 
     asked = []
     one_pass = fast_simplification.simplify
 
-    def counted(points, triangles, target_count):
-        asked.append((len(triangles), target_count))
-        return one_pass(points, triangles, target_count=target_count)
+    def counted(points, triangles, target_count, preserve_border):
+        asked.append((len(triangles), target_count, preserve_border))
+        return one_pass(points, triangles, target_count=target_count, preserve_border=preserve_border)
 
     monkeypatch.setattr(fast_simplification, "simplify", counted)
     reduction = SETTINGS.mesh.working_pass_reduction
     target = dense.triangle_count // 20
     vertices, faces = simplified(dense.vertices, dense.faces, target, pass_reduction=reduction)
-    assert [t for _, t in asked] == [int(target * reduction**k) for k in (2, 1, 0)]
-    assert all(n <= reduction * t for n, t in asked)
+    assert [kept for *_, kept in asked] == [True, True, False, False]
+    (n_a, t_a, _), (n_b, t_b, _) = asked[:2]
+    assert n_a + n_b == dense.triangle_count and abs(n_a - n_b) < 0.01 * n_a  # cut at the median
+    assert int(target * reduction**2) - 2 <= t_a + t_b <= int(target * reduction**2)
+    assert [t for _, t, _ in asked[2:]] == [int(target * reduction), target]
+    assert all(n <= reduction * t for n, t, _ in asked[2:])
     assert len(faces) <= target * 1.01 and is_closed_and_oriented(faces)
     assert TriangleLocator(vertices, faces).distance(dense.vertices).max() < SETTINGS.mesh.working_max_deviation_mm
     asked.clear()
     simplified(dense.vertices, dense.faces, target)
-    assert asked == [(dense.triangle_count, target)]  # the 3-D view's: one pass
+    assert asked == [(dense.triangle_count, target, False)]  # the 3-D view's: one pass
 
 
 @pytest.mark.skipif(not REAL_MESHES, reason=f"real meshes folder {TIBIA_DIR} is absent")
@@ -177,3 +210,24 @@ def test_copy_made_beside_the_tree(dense):
     assert replace(bone, vertices=bone.vertices + 1.0).locator is not tree  # other arrays: a tree of their own
     assert bone.locator is tree
     assert pickle.loads(pickle.dumps(bone)).trees == {}
+
+
+def test_halves_simplified_on_both_cores(dense):
+    """A copy of more than one pass: the runner simplifies the first pass's halves in a forked job and in
+    the parent, and gets the copy made in turn (bit-equal), closed and close to the mesh."""
+    from dataclasses import replace
+
+    from bonecad.mesh.working import pass_targets, with_working_copy
+    from bonecad.run.executor import executor_for
+    from bonecad.run.pipeline import copy_beside_tree
+
+    settings = replace(SETTINGS.mesh, working_pass_reduction=2.0)
+    target = working_triangles(dense.vertices, dense.faces, settings)
+    assert target is not None and len(pass_targets(target, dense.triangle_count, 2.0)) == 2
+    alone = with_working_copy(replace(dense, working=None), settings).working
+    with executor_for(True) as ex:
+        work = copy_beside_tree(ex)(replace(dense, working=None), settings).working
+    assert alone is not None and work is not None
+    assert np.array_equal(work.vertices, alone.vertices) and np.array_equal(work.faces, alone.faces)
+    assert is_closed_and_oriented(work.faces) and work.triangle_count <= target * 1.01
+    assert work.extra["max_deviation_mm"] <= settings.working_max_deviation_mm

@@ -77,10 +77,15 @@ def merge_duplicate_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[n
     """Vertices with exactly equal coordinates merged into the first of them (the others dropped, the order
     kept, as MeshLab's ``meshing_remove_duplicate_vertices``); returns (vertices, faces re-indexed)."""
     vertices = np.ascontiguousarray(vertices) + 0.0  # -0.0 -> 0.0: equal coordinates, equal bits
-    first_of = first_of_equal_rows(vertices)
-    keep = first_of == np.arange(len(vertices))
-    new_index = np.cumsum(keep) - 1
-    return vertices[keep], new_index[first_of][faces]
+    order, starts = _equal_row_groups(vertices)
+    n = len(vertices)
+    index = np.int32 if n < np.iinfo(np.int32).max else np.int64  # (half the memory traffic)
+    firsts = order[starts]  # each group's first vertex
+    keep = np.zeros(n, dtype=bool)
+    keep[firsts] = True
+    merged = np.empty(n, dtype=index)
+    merged[order] = np.repeat((np.cumsum(keep, dtype=index) - 1)[firsts], np.diff(np.r_[starts, n]))
+    return vertices[keep], merged[faces].astype(np.int64)
 
 
 def merge_close_vertices(vertices: np.ndarray, faces: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -117,7 +122,7 @@ class EdgeCounts:
 
     keys : (e,) int64, ``low * n + high`` of each edge's vertex indices, sorted
     faces_per_edge : (e,) faces using each edge (1: a border, more than 2: non-manifold)
-    half_edges : (e, 2) two of the half-edges on each edge (both the first when it has one)
+    half_edges : (e, 2) the first two half-edges on each edge (both the first when it has one)
     consistent : (e,) a two-face edge is used once in each direction (the faces' orientations agree)
     """
 
@@ -141,18 +146,36 @@ class EdgeCounts:
 
 
 def edge_counts(faces: np.ndarray, vertex_count: int) -> EdgeCounts:
-    """The undirected edges of ``faces`` (indices below ``vertex_count``), counted (``EdgeCounts``)."""
+    """The undirected edges of ``faces`` (indices below ``vertex_count``), counted (``EdgeCounts``).
+
+    An edge's half-edges come in increasing order. The half-edge's index is
+    packed under its edge's key so that a plain sort (no argsort: 0.57
+    against 0.80 s CPU for TLEM2's 5.7 M half-edges split 16-fold) groups
+    them, when both fit in 63 bits (up to about 4 M triangles).
+    """
     start = faces.ravel()
     end = faces[:, [1, 2, 0]].ravel()
     forward = start < end
-    keys = np.where(forward, start, end).astype(np.int64) * vertex_count + np.where(forward, end, start)
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    keys = np.minimum(start, end).astype(np.int64) * vertex_count
+    keys += np.maximum(start, end)
+    index_bits = max(1, (len(keys) - 1).bit_length())
+    if (max(1, vertex_count) ** 2).bit_length() + index_bits <= 63:
+        keys <<= index_bits
+        keys |= np.arange(len(keys))
+        keys.sort()
+        order = keys & ((1 << index_bits) - 1)
+        keys >>= index_bits
+    else:
+        order = np.argsort(keys, kind="stable")
+        keys = keys[order]
+    new = np.empty(len(keys), dtype=bool)
+    new[:1] = True
+    np.not_equal(keys[1:], keys[:-1], out=new[1:])
+    starts = np.flatnonzero(new)
     counts = np.diff(np.r_[starts, len(keys)])
     half = np.stack([order[starts], order[np.where(counts > 1, starts + 1, starts)]], axis=1)
     consistent = (counts != 2) | (forward[half[:, 0]] != forward[half[:, 1]])
-    return EdgeCounts(sorted_keys[starts], counts, half, consistent, vertex_count)
+    return EdgeCounts(keys[starts], counts, half, consistent, vertex_count)
 
 
 def non_manifold_vertices(faces: np.ndarray, edges: EdgeCounts) -> int:
@@ -163,13 +186,15 @@ def non_manifold_vertices(faces: np.ndarray, edges: EdgeCounts) -> int:
     its fan lies across its outgoing edge (where the twin half-edge ends). The
     fans are the cycles of that permutation, found by pointer doubling: each
     corner's label becomes the smallest corner within 2, 4, 8, ... steps
-    along its cycle, until no label changes.
+    along its cycle, until no label changes (int32 below 2^31 corners: half the memory traffic).
     """
-    twin = np.empty(3 * len(faces), dtype=np.int64)
+    corners = 3 * len(faces)
+    index = np.int32 if corners < np.iinfo(np.int32).max else np.int64
+    twin = np.empty(corners, dtype=index)
     first, second = edges.half_edges.T
     twin[first], twin[second] = second, first
-    step = twin - twin % 3 + (twin % 3 + 1) % 3  # the corner the twin half-edge runs to
-    label = np.arange(len(step))
+    step = twin + np.where(twin % 3 == 2, -2, 1).astype(index)  # the corner the twin half-edge runs to
+    label = np.arange(corners, dtype=index)
     while True:
         smaller = np.minimum(label, label[step])
         if np.array_equal(smaller, label):
@@ -177,7 +202,7 @@ def non_manifold_vertices(faces: np.ndarray, edges: EdgeCounts) -> int:
         label, step = smaller, step[step]
     used = np.zeros(edges.vertex_count, dtype=bool)
     used[faces] = True
-    return int(np.count_nonzero(label == np.arange(len(label)))) - int(np.count_nonzero(used))
+    return int(np.count_nonzero(label == np.arange(corners, dtype=index))) - int(np.count_nonzero(used))
 
 
 def is_closed_and_oriented(faces: np.ndarray) -> bool:

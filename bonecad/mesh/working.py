@@ -9,6 +9,10 @@ passes of at most ``working_pass_reduction`` times fewer triangles each;
 the largest distance of the full mesh's vertices from the copy is measured
 on every run and held below ``working_max_deviation_mm`` (the copy gets more
 triangles otherwise). The deviation of the models is measured against the full mesh.
+The first of several passes simplifies the mesh's two halves apart (``halves``), so that
+the runner gives them both cores: TLEM2's tibia split 16-fold (1.40 M triangles) to 122 k,
+1.74 + 1.41 s CPU for the halves against 3.27 s for the whole, the copy's worst vertex
+0.0144 mm from the mesh against 0.0120 mm.
 
 Vertex clustering on a grid before the simplifier (to let it see fewer
 triangles) was measured and dropped: on TLEM2 split 64-fold (5.6 M
@@ -27,7 +31,7 @@ import numpy as np
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.closest import TriangleLocator
 from bonecad.mesh.sampling import triangle_areas
-from bonecad.mesh.topology import first_of_equal_rows, is_closed_and_oriented
+from bonecad.mesh.topology import first_of_equal_rows, is_closed_and_oriented, merge_duplicate_vertices
 from bonecad.settings import MeshSettings
 
 log = logging.getLogger(__name__)
@@ -47,42 +51,96 @@ def working_triangles(vertices: np.ndarray, faces: np.ndarray, settings: MeshSet
     return target if len(faces) > settings.working_density_factor * target else None
 
 
-def simplified(vertices: np.ndarray, faces: np.ndarray, triangles: int, *, pass_reduction: float | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh simplified by quadric edge collapse to about ``triangles`` triangles (vertices mm, faces).
+def pass_targets(triangles: int, faces: int, pass_reduction: float | None) -> list[int]:
+    """The triangle counts of ``simplified``'s passes from ``faces`` triangles, first to last (the last
+    ``triangles``), each at most ``pass_reduction`` times fewer than the one before (None: one pass)."""
+    targets = [int(triangles)]
+    while pass_reduction is not None and targets[-1] * pass_reduction < faces:
+        targets.append(int(targets[-1] * pass_reduction))
+    return targets[::-1]
 
-    pass_reduction : simplify in passes, each to at most this many times fewer triangles than the
-        next (the last to ``triangles``); None: in one pass.
+
+def simplified_once(vertices: np.ndarray, faces: np.ndarray, target: int, *, keep_border: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """One pass of quadric edge collapse to about ``target`` triangles (vertices mm, faces).
+
+    keep_border : no edge with a vertex on the mesh's border collapses (a half's cut, ``halves``).
     An edge collapse can leave two faces on the same three vertices (a fin of
-    no volume, one in a million): both are dropped after each pass, with the vertices no face uses.
+    no volume, one in a million): both are dropped, with the vertices no face uses.
     """
     import fast_simplification
 
-    targets = [int(triangles)]
-    while pass_reduction is not None and targets[-1] * pass_reduction < len(faces):
-        targets.append(int(targets[-1] * pass_reduction))
-    for target in reversed(targets):
-        points, kept = fast_simplification.simplify(np.ascontiguousarray(vertices, dtype=np.float64),
-                                                    np.ascontiguousarray(faces, dtype=np.int64), target_count=target)
-        first = first_of_equal_rows(np.sort(kept, axis=1))
-        kept = kept[np.bincount(first, minlength=len(kept))[first] == 1]
-        used = np.zeros(len(points), dtype=bool)
-        used[kept] = True
-        vertices, faces = np.asarray(points[used], dtype=np.float64), (np.cumsum(used) - 1)[kept].astype(np.int64)
+    points, kept = fast_simplification.simplify(np.ascontiguousarray(vertices, dtype=np.float64),
+                                                np.ascontiguousarray(faces, dtype=np.int64), target_count=int(target),
+                                                preserve_border=keep_border)
+    first = first_of_equal_rows(np.sort(kept, axis=1))
+    kept = kept[np.bincount(first, minlength=len(kept))[first] == 1]
+    used = np.zeros(len(points), dtype=bool)
+    used[kept] = True
+    return np.asarray(points[used], dtype=np.float64), (np.cumsum(used) - 1)[kept].astype(np.int64)
+
+
+def halves(vertices: np.ndarray, faces: np.ndarray, target: int
+           ) -> tuple[tuple[np.ndarray, np.ndarray, int], tuple[np.ndarray, np.ndarray, int]]:
+    """The mesh cut in two at the median of its triangles' centres along its longest extent (a long bone:
+    across its shaft), each half with its share of ``target``: (vertices, faces, target) twice.
+
+    A first pass simplifies the halves apart (on two cores, ``simplified_once`` with ``keep_border``, so
+    the cut's vertices stay where they are and the halves join again, ``joined``); the next pass
+    simplifies the dense ring the cut left with the rest.
+    """
+    axis = int(np.argmax(np.ptp(vertices, axis=0)))
+    centre = vertices[faces[:, 0], axis] + vertices[faces[:, 1], axis] + vertices[faces[:, 2], axis]
+    low = centre <= np.median(centre)
+    parts = []
+    for side in (low, ~low):
+        part = faces[side]
+        used = np.zeros(len(vertices), dtype=bool)
+        used[part] = True
+        parts.append((vertices[used], (np.cumsum(used) - 1)[part], int(target * len(part) / len(faces))))
+    return parts[0], parts[1]
+
+
+def joined(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Two simplified halves (vertices, faces) as one mesh, the vertices of their cut merged (bit-equal: the
+    first pass kept them)."""
+    return merge_duplicate_vertices(np.concatenate([a[0], b[0]]), np.concatenate([a[1], b[1] + len(a[0])]))
+
+
+def simplified(vertices: np.ndarray, faces: np.ndarray, triangles: int, *, pass_reduction: float | None = None,
+               first: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh simplified by quadric edge collapse to about ``triangles`` triangles (vertices mm, faces).
+
+    pass_reduction : simplify in passes (``pass_targets``); None: in one pass. With more than one, the
+        first pass simplifies the mesh's two ``halves`` apart and joins them.
+    first : the first pass's result when the caller made it (its halves on two cores), the same as here.
+    """
+    targets = pass_targets(triangles, len(faces), pass_reduction)
+    if len(targets) > 1:
+        if first is None:
+            first = joined(*(simplified_once(v, f, t, keep_border=True)
+                             for v, f, t in halves(vertices, faces, targets[0])))
+        vertices, faces = first
+        targets = targets[1:]
+    for target in targets:
+        vertices, faces = simplified_once(vertices, faces, target)
     return vertices, faces
 
 
-def with_working_copy(bone: BoneMesh, settings: MeshSettings, *, area_mm2: float | None = None) -> BoneMesh:
+def with_working_copy(bone: BoneMesh, settings: MeshSettings, *, area_mm2: float | None = None,
+                      first: tuple[np.ndarray, np.ndarray] | None = None) -> BoneMesh:
     """``bone`` with its working copy (``BoneMesh.working``) when it is denser than the settings need.
 
     The copy's ``extra`` holds its largest vertex distance from the full mesh
     (``max_deviation_mm``, measured over every vertex of the full mesh).
     area_mm2 : the mesh's area when the caller has it (None: summed here).
+    first : ``simplified``'s first pass towards ``working_triangles``, when the caller made it.
     """
     target = working_triangles(bone.vertices, bone.faces, settings, area_mm2=area_mm2)
     while target is not None:
         vertices, faces = simplified(bone.vertices, bone.faces, target,
-                                     pass_reduction=settings.working_pass_reduction)
+                                     pass_reduction=settings.working_pass_reduction, first=first)
+        first = None  # (a second try starts from the mesh)
         closed = is_closed_and_oriented(faces)
         worst = float(TriangleLocator(vertices, faces).distance(bone.vertices).max()) if closed else np.inf
         if worst <= settings.working_max_deviation_mm:

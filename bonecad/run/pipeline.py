@@ -42,7 +42,7 @@ from bonecad.export.report import ReportDocument, Tolerances
 from bonecad.export.viewer import ViewMesh, input_view, model_view, viewer_html
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
-from bonecad.mesh.working import with_working_copy
+from bonecad.mesh.working import halves, joined, pass_targets, simplified_once, with_working_copy, working_triangles
 from bonecad.run.bones import bone_frame, bone_settings, kept_body, named_bone
 from bonecad.run.executor import Executor, InProcess, executor_for
 from bonecad.settings import MeshSettings, Settings, load_profile
@@ -163,19 +163,29 @@ def load_input(path: str | Path, settings: Settings, *, units: Units = "auto",
                      working_copy=working_copy)
 
 
-def working_copy_alone(bone: BoneMesh, settings: MeshSettings, area_mm2: float | None) -> BoneMesh | None:
+def working_copy_alone(bone: BoneMesh, settings: MeshSettings, area_mm2: float | None,
+                       first: tuple[np.ndarray, np.ndarray] | None) -> BoneMesh | None:
     """The working copy ``with_working_copy`` gives ``bone`` (None: none), alone: a background job's result
     (the full mesh stays in the parent)."""
-    return with_working_copy(bone, settings, area_mm2=area_mm2).working
+    return with_working_copy(bone, settings, area_mm2=area_mm2, first=first).working
 
 
 def copy_beside_tree(ex: Executor) -> Callable[..., BoneMesh]:
-    """``with_working_copy`` whose copy is simplified in a job of ``ex`` while this process builds the full
-    mesh's closest-point tree (``BoneMesh.locator``, for the analysis): the two costs that grow with the mesh,
-    on both cores."""
+    """``with_working_copy`` on both cores: the first pass's two halves simplified in a job of ``ex`` and in
+    this process, then the rest of the copy in a job while this process builds the full mesh's closest-point
+    tree (``BoneMesh.locator``, for the analysis): the costs that grow with the mesh, on both cores."""
 
     def working_copy(bone: BoneMesh, settings: MeshSettings, *, area_mm2: float | None = None) -> BoneMesh:
-        job = ex.submit(working_copy_alone, bone, settings, area_mm2)
+        target = working_triangles(bone.vertices, bone.faces, settings, area_mm2=area_mm2)
+        targets = pass_targets(target, bone.triangle_count, settings.working_pass_reduction) if target else []
+        first = None
+        if len(targets) > 1:
+            parts = halves(bone.vertices, bone.faces, targets[0])
+            half = ex.submit(simplified_once, *parts[0], keep_border=True)
+            other = simplified_once(*parts[1], keep_border=True)
+            del parts  # (not held through the tree's build)
+            first = joined(half.result(), other)
+        job = ex.submit(working_copy_alone, bone, settings, area_mm2, first)
         _ = bone.locator
         return replace(bone, working=job.result())
 
