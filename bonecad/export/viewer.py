@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import json
 import zipfile
 from dataclasses import dataclass, field
@@ -97,10 +96,16 @@ def input_view(bone_vertices: np.ndarray, bone_faces: np.ndarray, vertex_deviati
 
 
 def three_js() -> str:
-    """three.js r140 with TrackballControls: the script trimesh bundles for its notebook viewer."""
-    from trimesh import resources
+    """three.js r140 with TrackballControls: the script trimesh bundles for its notebook viewer, read from
+    trimesh's package data without importing trimesh (0.7 s at the end of every run)."""
+    import importlib.util
+    from pathlib import Path
 
-    with zipfile.ZipFile(io.BytesIO(resources.get_bytes("templates/viewer.zip"))) as archive:
+    spec = importlib.util.find_spec("trimesh")
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError("trimesh is not installed: the 3-D view needs the three.js it bundles")
+    bundle = Path(next(iter(spec.submodule_search_locations))) / "resources" / "templates" / "viewer.zip"
+    with zipfile.ZipFile(bundle) as archive:
         template = archive.read("viewer.html.template").decode("utf-8")
     start = template.index("<script>") + len("<script>")
     end = template.index("var camera,controls,scene")  # trimesh's own viewer code follows
