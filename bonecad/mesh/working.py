@@ -24,7 +24,9 @@ lay 0.29 / 0.44 mm from the mesh at its worst vertex (bound 0.1 mm).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -107,20 +109,37 @@ def joined(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -
     return merge_duplicate_vertices(np.concatenate([a[0], b[0]]), np.concatenate([a[1], b[1] + len(a[0])]))
 
 
+def halves_simplified(vertices: np.ndarray, faces: np.ndarray, target: int, *,
+                      beside: Callable[..., Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The first of several passes: the mesh's two ``halves`` simplified apart towards ``target`` and
+    ``joined``. beside : runs the first half's ``simplified_once`` elsewhere (an executor's ``submit``: a
+    job with ``result()``) while this process simplifies the second; None: both here, in turn."""
+    first, second = halves(vertices, faces, target)
+    elsewhere = beside(simplified_once, *first, keep_border=True) if beside is not None else None
+    done = simplified_once(*second, keep_border=True)
+    return joined(elsewhere.result() if elsewhere is not None else simplified_once(*first, keep_border=True), done)
+
+
+def first_pass_target(vertices: np.ndarray, faces: np.ndarray, settings: MeshSettings, *,
+                      area_mm2: float | None = None) -> int | None:
+    """The triangles of the first pass towards the working copy when it takes more than one
+    (``halves_simplified``), else None."""
+    target = working_triangles(vertices, faces, settings, area_mm2=area_mm2)
+    targets = pass_targets(target, len(faces), settings.working_pass_reduction) if target else []
+    return targets[0] if len(targets) > 1 else None
+
+
 def simplified(vertices: np.ndarray, faces: np.ndarray, triangles: int, *, pass_reduction: float | None = None,
                first: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The mesh simplified by quadric edge collapse to about ``triangles`` triangles (vertices mm, faces).
 
     pass_reduction : simplify in passes (``pass_targets``); None: in one pass. With more than one, the
-        first pass simplifies the mesh's two ``halves`` apart and joins them.
+        first pass simplifies the mesh's two halves apart (``halves_simplified``).
     first : the first pass's result when the caller made it (its halves on two cores), the same as here.
     """
     targets = pass_targets(triangles, len(faces), pass_reduction)
     if len(targets) > 1:
-        if first is None:
-            first = joined(*(simplified_once(v, f, t, keep_border=True)
-                             for v, f, t in halves(vertices, faces, targets[0])))
-        vertices, faces = first
+        vertices, faces = first if first is not None else halves_simplified(vertices, faces, targets[0])
         targets = targets[1:]
     for target in targets:
         vertices, faces = simplified_once(vertices, faces, target)

@@ -42,7 +42,7 @@ from bonecad.export.report import ReportDocument, Tolerances
 from bonecad.export.viewer import ViewMesh, input_view, model_view, viewer_html
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
-from bonecad.mesh.working import halves, joined, pass_targets, simplified_once, with_working_copy, working_triangles
+from bonecad.mesh.working import first_pass_target, halves_simplified, with_working_copy
 from bonecad.run.bones import bone_frame, bone_settings, kept_body, named_bone
 from bonecad.run.executor import Executor, InProcess, executor_for
 from bonecad.settings import MeshSettings, Settings, load_profile
@@ -176,15 +176,8 @@ def copy_beside_tree(ex: Executor) -> Callable[..., BoneMesh]:
     tree (``BoneMesh.locator``, for the analysis): the costs that grow with the mesh, on both cores."""
 
     def working_copy(bone: BoneMesh, settings: MeshSettings, *, area_mm2: float | None = None) -> BoneMesh:
-        target = working_triangles(bone.vertices, bone.faces, settings, area_mm2=area_mm2)
-        targets = pass_targets(target, bone.triangle_count, settings.working_pass_reduction) if target else []
-        first = None
-        if len(targets) > 1:
-            parts = halves(bone.vertices, bone.faces, targets[0])
-            half = ex.submit(simplified_once, *parts[0], keep_border=True)
-            other = simplified_once(*parts[1], keep_border=True)
-            del parts  # (not held through the tree's build)
-            first = joined(half.result(), other)
+        target = first_pass_target(bone.vertices, bone.faces, settings, area_mm2=area_mm2)
+        first = None if target is None else halves_simplified(bone.vertices, bone.faces, target, beside=ex.submit)
         job = ex.submit(working_copy_alone, bone, settings, area_mm2, first)
         _ = bone.locator
         return replace(bone, working=job.result())
