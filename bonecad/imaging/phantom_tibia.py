@@ -155,6 +155,47 @@ def _grid(p: TibiaParameters) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return xs, ys, zs
 
 
+#: voxels per side of the blocks ``_grid_field`` evaluates whole or not at all
+_BLOCK_VOXELS = 2
+#: a bound on the field's gradient (mm per mm): its terms are distances scaled by at most 10 / 7 (the tuberosity
+#: ellipsoid) and the torsion turns a section by at most 0.01 rad per mm; twice that as a margin
+_FIELD_LIPSCHITZ = 3.0
+
+
+def _grid_field(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, p: TibiaParameters) -> np.ndarray:
+    """``_field`` on the grid ``xs`` x ``ys`` x ``zs`` where marching cubes reads it: exactly in every block of
+    ``_BLOCK_VOXELS`` voxels the surface may cross (judged from the field at the blocks' corners and its
+    gradient bound), and elsewhere the blocks' sign times that reach. A cube of the grid lies in one block, so
+    every cube the surface crosses has exact corners: the mesh is the one of the field evaluated everywhere, at
+    a third of the cost (the grid is a box round a slender bone; 20 varied phantoms: 57.5 s of CPU
+    evaluated everywhere, 24.8 s in blocks of 4 voxels, 15.9 s in blocks of 2)."""
+    k, h = _BLOCK_VOXELS, float(xs[1] - xs[0])
+    nodes = [np.unique(np.r_[np.arange(0, len(a), k), len(a) - 1]) for a in (xs, ys, zs)]
+    cx, cy, cz = np.meshgrid(xs[nodes[0]], ys[nodes[1]], zs[nodes[2]], indexing="ij")
+    corner = _field(cx, cy, cz, p)
+    cells = [corner[a : corner.shape[0] - 1 + a, b : corner.shape[1] - 1 + b, c : corner.shape[2] - 1 + c]
+             for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    reach = _FIELD_LIPSCHITZ * k * h * np.sqrt(3.0)
+    lo, hi = np.minimum.reduce(cells), np.maximum.reduce(cells)
+    near_cell = (lo <= reach) & (hi >= -reach)
+    # each grid index's blocks along one axis: two where it is a block boundary (the same one inside a block)
+    sides = []
+    for a, n in zip((xs, ys, zs), nodes):
+        idx = np.arange(len(a))
+        after = np.minimum(np.searchsorted(n, idx, side="right") - 1, len(n) - 2)
+        sides.append((np.maximum(np.searchsorted(n, idx, side="left") - 1, 0), after))
+    near = np.zeros((len(xs), len(ys), len(zs)), dtype=bool)
+    for bx in sides[0]:
+        for by in sides[1]:
+            for bz in sides[2]:
+                near |= near_cell[np.ix_(bx, by, bz)]
+    inside = lo[np.ix_(sides[0][1], sides[1][1], sides[2][1])] < 0  # a far block: one sign at all its corners
+    field = np.where(inside, -reach, reach)
+    ix, iy, iz = np.nonzero(near)
+    field[ix, iy, iz] = _field(xs[ix], ys[iy], zs[iz], p)
+    return field
+
+
 def phantom_tibia(params: TibiaParameters, *, settings: MeshSettings, plausible: UnitsSettings) -> BoneMesh:
     """A closed triangle mesh of the phantom (a right tibia in bone coordinates, mm)."""
     from skimage.measure import marching_cubes
@@ -163,8 +204,7 @@ def phantom_tibia(params: TibiaParameters, *, settings: MeshSettings, plausible:
     p = params
     h = p.voxel_mm
     xs, ys, zs = _grid(p)
-    X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
-    field = _field(X, Y, Z, p).astype(np.float32)
+    field = _grid_field(xs, ys, zs, p).astype(np.float32)
     verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(h, h, h))
     verts += np.array([xs[0], ys[0], zs[0]])
     mesh = trimesh.Trimesh(verts, faces, process=True)
