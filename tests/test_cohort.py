@@ -161,6 +161,16 @@ def test_the_real_tibias_are_done_with_their_sides(manifest_run):
         assert 300 < r.parameters["length_mm"] < 420, r.parameters
 
 
+@pytest.mark.skipif(not REAL_MESHES, reason=f"real meshes folder {TIBIA_DIR} is absent")
+@pytest.mark.parametrize("name", [p.stem for p in REAL_MESHES])
+def test_the_template_fits_each_real_tibia_within_half_mm(manifest_run, name):
+    """Issue 21: the shipped template (``cohort_job``'s fit, the one ``bonecad cohort`` writes) within 0.5 mm of
+    99 % of each real tibia's surface."""
+    result, _, _, _ = manifest_run
+    record = next(r for r in result.records if r.bone_id == name)
+    assert record.figures["fit_share_within"] >= 0.99, record.figures
+
+
 def test_a_rerun_takes_every_final_bone_from_the_journal(manifest_run):
     result, out, first_s, settings = manifest_run
     started = time.perf_counter()

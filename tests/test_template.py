@@ -12,7 +12,7 @@ from bonecad.run.cli import main
 from tests.cohorts import design, phantom_parameters, varied
 from tests.defaults import SETTINGS
 
-from .conftest import phantoms_on_both_cores, real_mesh_params
+from .conftest import phantoms_on_both_cores
 
 pytestmark = pytest.mark.slow
 
@@ -154,12 +154,15 @@ def test_shape_model_saves_and_loads(model_dir, cohort):
 
 def test_morph_from_design_parameters_reproduces_held_out_phantoms(model_dir, cohort):
     """Morph from the held-out phantoms' design parameters; RMS distance of their meshes from the morph."""
+    import bonecad
     from bonecad.analysis.shape_model import morph_weights, surface_distance_mm
-    from bonecad.run.shapes import load_model, template_fit_bone
+    from bonecad.run.shapes import load_model
+    from bonecad.tspline_model.template import surface_targets
 
     model = load_model(model_dir[0])
-    for bone, params in cohort[3]:
-        _, points, weights = template_fit_bone(bone, SETTINGS)
+    for bone, params in cohort[3]:  # their meshes' points and areas, as a template fit reads them
+        points, weights = surface_targets(bone, bonecad.anatomical_frame(bone), SETTINGS.template,
+                                          apex_hole_radius_mm=SETTINGS.curves.apex_hole_radius_mm)
         cp = model.shape(morph_weights(model, varied(params), SETTINGS.shape_model))
         rms = surface_distance_mm(cp, SETTINGS.template, points, weights)
         assert rms < 1.0, (varied(params), rms)
@@ -196,12 +199,3 @@ def test_morph_refuses_out_of_range_or_unknown_parameters(model_dir, tmp_path, c
     err = capsys.readouterr().err
     assert all(w in err for w in words), err
     assert not out.exists()
-
-
-@pytest.mark.parametrize("path", real_mesh_params())
-def test_template_fits_real_tibias_within_half_mm(path):
-    import bonecad
-    from bonecad.run.shapes import template_fit_bone
-
-    fit, _, _ = template_fit_bone(bonecad.load_bone(path), SETTINGS)
-    assert fit.share_within >= 0.99, fit.summary()
