@@ -91,18 +91,17 @@ def test_an_error_in_the_frame_stage_exits_2_and_leaves_nothing(tmp_path, phanto
     assert len(err) == 1 and "region boundaries" in err[0]
 
 
-def test_background_jobs_change_nothing_but_time(tmp_path, phantom):
+def test_background_jobs_change_nothing_but_time(tmp_path, phantom_run):
     """The second core's jobs (bonecad.run.executor) give the same models and figures as one process:
-    every file byte for byte (STEP, IGES, JSON, PNG), the report but for its timings."""
-    from bonecad.run.pipeline import reconstruct_bone
-    from bonecad.settings import Settings
-
+    every file byte for byte (STEP, IGES, JSON, PNG), the report but for its timings. The session's
+    ``phantom_run`` (background jobs, the default) against the same command in one process."""
+    config = tmp_path / "one_process.toml"
+    config.write_text("[pipeline]\nbackground_jobs = false\n")
+    alone = tmp_path / "one_process"
+    assert main(["reconstruct", str(phantom_run.parent / "phantom.stl"), "--out", str(alone), "--config", str(config),
+                 "-q"]) == 0
     reports = []
-    for background in (True, False):
-        settings = Settings.load(overrides={"pipeline": {"background_jobs": background}})
-        out = tmp_path / f"background_{background}"
-        result = reconstruct_bone(phantom, out, settings)
-        assert result.models["nurbs"].control_points > 0 and result.models["tspline"].control_points > 0
+    for out in (phantom_run, alone):
         report = json.loads((out / "report.json").read_text())
         for model in report["models"].values():
             model["info"].pop("timings_s", None)
@@ -110,7 +109,7 @@ def test_background_jobs_change_nothing_but_time(tmp_path, phantom):
         reports.append((report["models"], json.loads((out / "curves.json").read_text()),
                         sorted(p.name for p in out.iterdir())))
     assert reports[0] == reports[1]
+    assert all(model["info"]["control_points"] > 0 for model in reports[0][0].values())
     for name in reports[0][2]:
         if not name.startswith("report."):
-            assert (tmp_path / "background_True" / name).read_bytes() == \
-                (tmp_path / "background_False" / name).read_bytes(), name
+            assert (phantom_run / name).read_bytes() == (alone / name).read_bytes(), name
