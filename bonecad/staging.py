@@ -5,14 +5,17 @@ when the whole command succeeds are the files moved into ``DIR``. On any
 failure (and on SIGINT/SIGTERM, which the CLI turns into exceptions) the
 staging folder is removed, so no partial output is ever left. A process
 killed outright (SIGKILL) cannot clean up: its staging folder carries its
-process id, and the next run into the same ``DIR`` removes it.
+process id, and the next run into the same ``DIR`` removes it. The removal itself
+cannot be cut short by a signal (``interrupts_deferred``).
 """
 from __future__ import annotations
 
 import glob
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from collections.abc import Iterator
@@ -22,6 +25,26 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+#: the signals the CLI turns into exceptions (Ctrl-C, SIGTERM)
+_INTERRUPTS = {signal.SIGINT, signal.SIGTERM}
+
+
+@contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """A block that SIGINT and SIGTERM cannot interrupt halfway: they are held (blocked) until it ends, then
+    delivered. For short bookkeeping whose half-done state would leave something behind: a child forked but
+    not yet owned, children half stopped, a staging folder half removed. In threads other than the main one
+    (which receive no Python signal handler's exceptions) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _INTERRUPTS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _alive(pid: int) -> bool:
@@ -60,7 +83,8 @@ def staged_output(out_dir: str | Path) -> Iterator[Path]:
                 shutil.rmtree(target)
             os.replace(item, target)
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        with interrupts_deferred():
+            shutil.rmtree(staging, ignore_errors=True)
 
 
 @contextmanager

@@ -289,7 +289,9 @@ def test_signal_stops_every_process_and_removes_staging(tmp_path, how):
         if out.exists():
             problems.append(f"the output folder {out} exists after {how}")
         if staging_folders(out):
-            problems.append(f"staging folder(s) left after {how}: {staging_folders(out)}")
+            problems.append(f"staging folder(s) left after {how}: {staging_folders(out)}, holding "
+                            f"{[p.name for f in staging_folders(out) for p in (out.parent / f).iterdir()]}; "
+                            f"the run said: {run.stderr()[-600:]!r}")
         assert not problems, "\n".join(problems)
     finally:
         kill_run(out)

@@ -41,6 +41,8 @@ from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol
 from collections.abc import Callable, Iterator
 
+from bonecad.staging import interrupts_deferred
+
 log = logging.getLogger(__name__)
 
 #: seconds a child is given to end after SIGTERM before it is killed
@@ -179,6 +181,7 @@ def _child_main(send: Connection, parent: int, fn: Callable[..., Any], args: tup
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C reaches the parent, which stops its children
     signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})  # held while it was forked
     try:
         message: tuple[bool, Any] = (True, fn(*args, **kwargs))
     except Exception as exc:
@@ -262,7 +265,10 @@ class Fork:
         self._forking = True
         try:
             release_free_heap()  # what the child inherits is what this process uses
-            child.start()
+            # an interrupt raised between the fork and the child's record would leave it running unowned (and
+            # writing into a staging folder already removed): held until the child is recorded
+            with interrupts_deferred():
+                child.start()
         finally:
             self._forking = False
         log.debug("job %s started in process %d", child.name, child._process.pid)
@@ -274,11 +280,12 @@ class Fork:
         if exc_type is ChildFailed:
             failed = next((e for e in (c.failure() for c in self._children) if e is not None), None)
         started = time.perf_counter()
-        for child in self._children:
-            child.stop()
-        self._children.clear()
-        # a failure signal still in flight is ignored from here on (the handler sees _open False)
-        self._stack.close()
+        with interrupts_deferred():  # every child stopped (at most the grace period each), a second Ctrl-C or not
+            for child in self._children:
+                child.stop()
+            self._children.clear()
+            # a failure signal still in flight is ignored from here on (the handler sees _open False)
+            self._stack.close()
         log.debug("children stopped in %.2f s", time.perf_counter() - started)
         if exc_type is ChildFailed:
             raise failed or RuntimeError("a background job failed without saying why") from None
