@@ -69,7 +69,7 @@ def varied_phantoms():
 
 
 def phantoms_on_both_cores(params: list) -> list:
-    """The phantom of each of ``params`` (shipped settings), made two at a time in forked children: 3 s
+    """The phantom of each of ``params`` (shipped settings), made two at a time in forked children: 1.5-2 s
     each at 1 mm, and the fixtures need 34 of them."""
     from bonecad.imaging.phantom_tibia import phantom_tibia
     from bonecad.run.executor import executor_for
