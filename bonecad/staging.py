@@ -33,18 +33,24 @@ _INTERRUPTS = {signal.SIGINT, signal.SIGTERM}
 
 @contextmanager
 def interrupts_deferred() -> Iterator[None]:
-    """A block that SIGINT and SIGTERM cannot interrupt halfway: they are held (blocked) until it ends, then
-    delivered. For short bookkeeping whose half-done state would leave something behind: a child forked but
-    not yet owned, children half stopped, a staging folder half removed. In threads other than the main one
-    (which receive no Python signal handler's exceptions) it does nothing."""
+    """A block that SIGINT and SIGTERM cannot interrupt halfway: a signal that arrives inside it is noted and
+    raised again, to the handler it would have met, when the block ends. For short bookkeeping whose half-done
+    state would leave something behind: a child forked but not yet owned, children half stopped, a staging
+    folder half removed. (Held by Python handlers, not by the thread's signal mask: the kernel hands a
+    process's signal to any thread that does not block it, BLAS's among them.) Outside the main thread, which
+    alone runs Python's signal handlers, it does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _INTERRUPTS)
+    arrived: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: arrived.append(signum)) for s in _INTERRUPTS}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for signum in arrived:
+            signal.raise_signal(signum)
 
 
 def _alive(pid: int) -> bool:

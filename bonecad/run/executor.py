@@ -181,7 +181,6 @@ def _child_main(send: Connection, parent: int, fn: Callable[..., Any], args: tup
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C reaches the parent, which stops its children
     signal.signal(signal.SIGUSR1, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})  # held while it was forked
     try:
         message: tuple[bool, Any] = (True, fn(*args, **kwargs))
     except Exception as exc:
