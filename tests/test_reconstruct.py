@@ -3,6 +3,7 @@ here, the T-spline's with its stage)."""
 from __future__ import annotations
 
 import json
+import threading
 
 import pytest
 
@@ -91,15 +92,25 @@ def test_an_error_in_the_frame_stage_exits_2_and_leaves_nothing(tmp_path, phanto
     assert len(err) == 1 and "region boundaries" in err[0]
 
 
-def test_background_jobs_change_nothing_but_time(tmp_path, phantom_run):
+def test_background_jobs_change_nothing_but_time(tmp_path, phantom_run, monkeypatch):
     """The second core's jobs (bonecad.run.executor) give the same models and figures as one process:
     every file byte for byte (STEP, IGES, JSON, PNG), the report but for its timings. The session's
-    ``phantom_run`` (background jobs, the default) against the same command in one process."""
+    ``phantom_run`` (background jobs, the default) against the same command in one process.
+
+    And that process starts no Python thread: a Ctrl-C (KeyboardInterrupt) or a child's failure signal
+    raised in the main thread while it joins a pool of Python threads frees the arrays they still write
+    (scipy's cKDTree.query with ``workers=-1``: the CLI died of a segmentation fault, leaving its staging
+    folder, when interrupted during the T-spline fit's first closest-point search)."""
     config = tmp_path / "one_process.toml"
     config.write_text("[pipeline]\nbackground_jobs = false\n")
     alone = tmp_path / "one_process"
+    started = []
+    start = threading.Thread.start
+    monkeypatch.setattr(threading.Thread, "start", lambda thread: (started.append(thread.name), start(thread))[1])
     assert main(["reconstruct", str(phantom_run.parent / "phantom.stl"), "--out", str(alone), "--config", str(config),
                  "-q"]) == 0
+    monkeypatch.undo()
+    assert not started, f"threads started in the run's process: {started}"
     reports = []
     for out in (phantom_run, alone):
         report = json.loads((out / "report.json").read_text())

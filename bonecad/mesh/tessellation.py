@@ -134,7 +134,7 @@ class Tessellation:
         t = self.vertices[self.triangles]
         edge = max(float(np.linalg.norm(t[:, (k + 1) % 3] - t[:, k], axis=1).max()) for k in range(3))
         reach = np.abs(np.asarray(distance_mm, dtype=np.float64)) + edge
-        hits = cKDTree(t.mean(axis=1)).query_ball_point(points, reach, workers=-1)
+        hits = cKDTree(t.mean(axis=1)).query_ball_point(points, reach)
         near = np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]))
         if len(near) == 0:
             return 0.0

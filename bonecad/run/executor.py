@@ -24,6 +24,12 @@ with two BLAS threads, 30 s and 20.5 s with one). It is one thread in process
 too, so both ways give the same numbers (BLAS sums in another order with more
 threads, and a fit to noisy MRI data can refine differently on a last-digit
 difference).
+
+For the same reason no stage starts Python threads (scipy's ``workers=-1``): and
+a KeyboardInterrupt, SIGTERM or child-failure exception raised in the main
+thread while it joins such threads frees the arrays they still write (a
+segmentation fault seen when Ctrl-C landed in the T-spline fit's first
+closest-point search, which left the staging folder behind).
 """
 from __future__ import annotations
 

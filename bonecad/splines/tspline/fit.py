@@ -214,7 +214,7 @@ def initial_parameters(
     gt = np.linspace(t0, t1, nt)
     ss, tt = np.meshgrid(gs, gt, indexing="ij")
     samples = ts.evaluate(ss.ravel(), tt.ravel()).points
-    _, idx = cKDTree(samples).query(np.asarray(points, dtype=np.float64), workers=-1)
+    _, idx = cKDTree(samples).query(np.asarray(points, dtype=np.float64))
     return project_points(ts, points, ss.ravel()[idx], tt.ravel()[idx], iterations=iterations)
 
 
@@ -242,7 +242,7 @@ def local_noise_mm(points: np.ndarray, *, neighbours: int = 24, voxel_mm: float 
     k = min(neighbours, len(points))
     if k < 10:
         return np.zeros(len(centres))
-    _, idx = cKDTree(points).query(centres, k=k, workers=-1)
+    _, idx = cKDTree(points).query(centres, k=k)
     out = np.empty(len(centres))
     for lo in range(0, len(centres), 1 << 14):
         nb = points[idx[lo : lo + (1 << 14)]]  # (m, k, 3)
