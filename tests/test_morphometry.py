@@ -38,17 +38,23 @@ PUBLISHED = {
     "medial_posterior_slope_deg": (-0.1, 15.9),
     "lateral_posterior_slope_deg": (-2.3, 14.7),
     "torsion_deg": (17.7, 52.1),
+    # Osteometric caliper measures of dry bones, mean +- 2 SD computed from the individual measurements of the
+    # Forensic Data Bank and DPAA reference samples shipped with OsteoSort (README: files, commits, definitions).
+    "plafond_depth_mm": (23.5, 37.2),
+    "bimalleolar_width_mm": (41.0, 58.7),
+    "shaft_ap_50_mm": (23.4, 35.1),
+    "shaft_ap_65_mm": (26.6, 42.4),
+    "shaft_ml_65_mm": (18.3, 30.4),
 }
 # The parameters left untested, each with its reason (README, `measure`: what was searched).
 _NO_SOURCE = "no published adult mean and SD found for this definition"
 UNSOURCED = {
     "plafond_width_mm": _NO_SOURCE + " (the tibial plafond width is named in CT studies, without figures)",
-    "plafond_depth_mm": _NO_SOURCE,
-    "bimalleolar_width_mm": _NO_SOURCE + " (the distal epiphyseal breadth: means only, 10-19 mm below the real "
-                            "tibias)",
+    "shaft_ml_50_mm": _NO_SOURCE + " (the nearest, the osteometric minimum midshaft diameter, 16.8-25.3 mm, is not the "
+                      "medio-lateral extent, and ICL's 25.9 mm lies above it)",
     **{f"shaft_{d}_{p}_mm": _NO_SOURCE + " (csg-dataset: its data files are not readable here; its properties "
        "are areas and second moments, the extents would come from its polygons)"
-       for d in ("ml", "ap") for p in (20, 35, 50, 65, 80)},
+       for d in ("ml", "ap") for p in (20, 35, 80)},
 }
 
 #: issue 21: 1 mm for lengths, 1 degree for angles
