@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import subprocess
 import sys
 
@@ -72,6 +73,20 @@ def test_console_script_help():
     assert result.returncode == 0
     for command in ("inspect", "frame", "demo"):
         assert command in result.stdout
+
+
+def test_the_command_ends_at_once_with_its_output_and_status(phantom_stl, tmp_path):
+    """The ``bonecad`` command (``cli.entry``) skips Python's teardown: what it printed into a pipe still
+    arrives whole (block-buffered when not a terminal), and its exit status is main's."""
+    command = [sys.executable, "-m", "bonecad.run.cli"]
+    buffered = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # as a user's shell has it
+    done = subprocess.run([*command, "inspect", str(phantom_stl), "--json"], capture_output=True, text=True,
+                          timeout=120, env=buffered)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["triangles"] > 0
+    bad = subprocess.run([*command, "inspect", str(tmp_path / "absent.stl")], capture_output=True, text=True,
+                         timeout=120, env=buffered)
+    assert bad.returncode == 2 and bad.stderr.strip().endswith("file does not exist"), bad.stderr
 
 
 @pytest.mark.parametrize("path", real_mesh_params())

