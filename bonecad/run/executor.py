@@ -25,11 +25,11 @@ too, so both ways give the same numbers (BLAS sums in another order with more
 threads, and a fit to noisy MRI data can refine differently on a last-digit
 difference).
 
-For the same reason no stage starts Python threads (scipy's ``workers=-1``): and
-a KeyboardInterrupt, SIGTERM or child-failure exception raised in the main
-thread while it joins such threads frees the arrays they still write (a
-segmentation fault seen when Ctrl-C landed in the T-spline fit's first
-closest-point search, which left the staging folder behind).
+No stage starts Python threads either (scipy's ``workers=-1``): the processes
+fill the cores already, and a KeyboardInterrupt, SIGTERM or child-failure
+exception raised in the main thread while it joins such threads frees the
+arrays they still write (a segmentation fault, seen when Ctrl-C landed in the
+T-spline fit's first closest-point search; it left the staging folder behind).
 """
 from __future__ import annotations
 
