@@ -106,7 +106,12 @@ def test_background_jobs_change_nothing_but_time(tmp_path, phantom_run, monkeypa
     alone = tmp_path / "one_process"
     started = []
     start = threading.Thread.start
-    monkeypatch.setattr(threading.Thread, "start", lambda thread: (started.append(thread.name), start(thread))[1])
+
+    def noted_start(thread: threading.Thread) -> None:
+        started.append(thread.name)
+        start(thread)
+
+    monkeypatch.setattr(threading.Thread, "start", noted_start)
     assert main(["reconstruct", str(phantom_run.parent / "phantom.stl"), "--out", str(alone), "--config", str(config),
                  "-q"]) == 0
     monkeypatch.undo()
