@@ -45,13 +45,14 @@ PUBLISHED = {
     "shaft_ap_50_mm": (23.4, 35.1),
     "shaft_ap_65_mm": (26.6, 42.4),
     "shaft_ml_65_mm": (18.3, 30.4),
+    # The same computed from the individuals of the Goldman Osteometric Data Set (bioanth's copy; README: commit,
+    # columns, what its documentation leaves open).
+    "shaft_ml_50_mm": (16.8, 26.6),
 }
 # The parameters left untested, each with its reason (README, `measure`: what was searched).
 _NO_SOURCE = "no published adult mean and SD found for this definition"
 UNSOURCED = {
     "plafond_width_mm": _NO_SOURCE + " (the tibial plafond width is named in CT studies, without figures)",
-    "shaft_ml_50_mm": _NO_SOURCE + " (the nearest, the osteometric minimum midshaft diameter, 16.8-25.3 mm, is not the "
-                      "medio-lateral extent, and ICL's 25.9 mm lies above it)",
     **{f"shaft_{d}_{p}_mm": _NO_SOURCE + " (csg-dataset: its data files are not readable here; its properties "
        "are areas and second moments, the extents would come from its polygons)"
        for d in ("ml", "ap") for p in (20, 35, 80)},
