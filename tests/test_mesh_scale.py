@@ -49,6 +49,57 @@ def test_equal_rows_exact_under_hash_collisions(monkeypatch):
         assert np.array_equal(vertices, expected[0]) and np.array_equal(faces, expected[1])
 
 
+def test_negative_zero_is_zero():
+    """A corner at -0.0 and one at 0.0 are the same vertex (their bits differ), and the input is left as given."""
+    corners = np.array([[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [1.0, 0.0, 0.0]], dtype=np.float32)
+    given = corners.copy()
+    vertices, faces = merge_duplicate_vertices(corners, np.array([[0, 1, 2]]))
+    assert len(vertices) == 2 and faces.tolist() == [[0, 0, 1]] and not np.signbit(vertices).any()
+    assert np.array_equal(corners, given) and np.signbit(corners[1, 0])
+
+
+def test_equal_rows_split_between_two_processes(monkeypatch):
+    """Rows grouped in two halves, one in a forked job: the same first rows as grouped at once, under hash
+    collisions too, for floats and integers."""
+    from bonecad.mesh import topology
+    from bonecad.run.executor import Fork
+
+    rng = np.random.default_rng(2)
+    monkeypatch.setattr(topology, "SPLIT_ROWS", 100)
+    for rows in (rng.integers(0, 40, (500, 3)).astype(np.float32)[rng.integers(0, 500, 6000)],
+                 rng.integers(-5, 5, (300, 3))[rng.integers(0, 300, 4000)]):
+        alone = topology.first_of_equal_rows(rows)
+        for mix in (topology._WORD_MIX, np.zeros(6, dtype=np.uint64)):
+            monkeypatch.setattr(topology, "_WORD_MIX", mix)
+            with Fork() as ex:
+                assert np.array_equal(topology.first_of_equal_rows(rows, beside=ex.submit), alone)
+
+
+@pytest.mark.parametrize("extra_face", [None, [0, 0, 1]], ids=["clean", "a degenerate face"])
+def test_cleanup_beside_gives_the_same_bone(dense, monkeypatch, extra_face):
+    """The runner's cleanup, half the merging and the face checks in forked jobs: the same bone, bit for bit,
+    as cleaned in one process, also when a face is dropped (the edges counted beside are then not used)."""
+    from bonecad.mesh import topology
+    from bonecad.run.executor import Fork
+
+    monkeypatch.setattr(topology, "SPLIT_ROWS", 1000)
+    corners = dense.vertices[dense.faces].reshape(-1, 3).astype(np.float32)  # an STL's unshared corners
+    faces = np.arange(len(corners)).reshape(-1, 3)
+    if extra_face is not None:
+        faces = np.vstack([faces, extra_face])
+
+    def cleaned(beside):
+        return prepare_bone(corners, faces, source="soup", settings=SETTINGS.mesh, plausible=SETTINGS.units,
+                            working_copy=lambda bone, settings, **_: bone, beside=beside)
+
+    alone = cleaned(None)
+    with Fork() as ex:
+        split = cleaned(ex.submit)
+    assert np.array_equal(split.vertices, alone.vertices) and np.array_equal(split.faces, alone.faces)
+    assert split.summary() == alone.summary()  # repairs and bodies
+    assert any("degenerate" in r for r in alone.repairs) == (extra_face is not None)
+
+
 def test_edges_fans_and_duplicates():
     sphere = trimesh.creation.icosphere(2)
     faces = np.asarray(sphere.faces)

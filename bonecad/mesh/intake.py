@@ -15,7 +15,7 @@ import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
 from collections.abc import Callable
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -107,7 +107,7 @@ def _binary_stl(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     return records["corners"].reshape(-1, 3), np.arange(3 * count, dtype=np.int64).reshape(-1, 3)
 
 
-def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
+def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, beside: Callable[..., Any] | None = None
            ) -> tuple[np.ndarray, np.ndarray, EdgeCounts, np.ndarray, list[str]]:
     """Cleanup; returns the cleaned arrays (vertices float64), their edges, the triangles' areas (mm^2, input
     units) and a list of what was repaired.
@@ -116,6 +116,9 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
     are removed here (vectorised, in MeshLab's order); a mesh that then has
     border or non-manifold edges or vertices is cleaned and repaired by MeshLab
     from the arrays as given, as before.
+    beside : runs part of the work elsewhere (an executor's ``submit``) while this process does the rest:
+        half the vertex merging, then the face checks while this process counts the edges of the faces
+        as merged (used when the checks drop no face, the common case).
     """
     repairs: list[str] = []
 
@@ -124,17 +127,20 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
             repairs.append(f"{label}: vertices {before[0]}->{after[0]}, faces {before[1]}->{after[1]}")
 
     size = (len(vertices), len(faces))
-    merged_vertices, merged = merge_duplicate_vertices(vertices, faces)
+    merged_vertices, merged = merge_duplicate_vertices(vertices, faces, beside=beside)
     merged_vertices = merged_vertices.astype(np.float64, copy=False)
-    unique = _rows(merged, ~duplicate_faces(merged))
-    area = triangle_areas(merged_vertices, unique)
+    checks = beside(_face_checks, merged_vertices, merged) if beside is not None else None
+    merged_edges = edge_counts(merged, len(merged_vertices)) if checks is not None else None
+    duplicate, merged_area = checks.result() if checks is not None else _face_checks(merged_vertices, merged)
+    unique, area = _rows(merged, ~duplicate), _rows(merged_area, ~duplicate)
     positive = area > 0
     proper, area = _rows(unique, positive), _rows(area, positive)
     used = np.zeros(len(merged_vertices), dtype=bool)
     used[proper] = True
     kept_vertices, kept_faces = ((merged_vertices, proper) if used.all() else
                                  (merged_vertices[used], (np.cumsum(used) - 1)[proper]))
-    edges = edge_counts(kept_faces, len(kept_vertices))
+    edges = merged_edges if kept_faces is merged and merged_edges is not None else edge_counts(kept_faces,
+                                                                                                len(kept_vertices))
     if edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(kept_faces, edges):
         vertices, faces = _meshlab_clean(vertices, faces, max_hole_edges, note)
         return vertices, faces, edge_counts(faces, len(vertices)), triangle_areas(vertices, faces), repairs
@@ -143,6 +149,11 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int
     note("removed degenerate (zero-area) faces", size, size := (len(merged_vertices), len(proper)))
     note("removed unreferenced vertices", size, (len(kept_vertices), len(kept_faces)))
     return kept_vertices, kept_faces, edges, area, repairs
+
+
+def _face_checks(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) bool the faces that repeat an earlier one (``duplicate_faces``), (m,) their areas (mm^2)."""
+    return duplicate_faces(faces), triangle_areas(vertices, faces)
 
 
 def _rows(array: np.ndarray, kept: np.ndarray) -> np.ndarray:
@@ -278,17 +289,19 @@ def load_bone(
     plausible: UnitsSettings,
     keep: Kept = "tibia",
     working_copy: Callable[..., BoneMesh] = with_working_copy,
+    beside: Callable[..., Any] | None = None,
 ) -> BoneMesh:
     """Read, clean and check a bone mesh; keep the ``keep`` body (found by anatomy), report the others.
 
     working_copy : ``with_working_copy`` or a function of the same arguments and result (the runner's, which
         builds the mesh's closest-point tree meanwhile).
+    beside : runs part of the cleanup elsewhere (an executor's ``submit``, ``_clean``); None: all here.
 
     Raises InputError (naming the file) for unreadable files, wrong units, a
     tibia broken into pieces, or a bone fused to a neighbouring bone.
     """
     return prepare_bone(*read_mesh_file(path), source=path, units=units, settings=settings,  # (arrays not held)
-                        plausible=plausible, keep=keep, working_copy=working_copy)
+                        plausible=plausible, keep=keep, working_copy=working_copy, beside=beside)
 
 
 def prepare_bone(
@@ -301,6 +314,7 @@ def prepare_bone(
     plausible: UnitsSettings,
     keep: Kept = "tibia",
     working_copy: Callable[..., BoneMesh] = with_working_copy,
+    beside: Callable[..., Any] | None = None,
 ) -> BoneMesh:
     """Clean raw mesh arrays and keep one body (see ``load_bone``); ``source`` names them in errors.
 
@@ -308,7 +322,7 @@ def prepare_bone(
     keep : the body kept from a leg (``BoneProfile.body``): the tibia, found first (the other bodies' roles
         are read from their place beside it), or the femur it names; a single body is kept either way."""
     path = Path(source) if source else None
-    vertices, faces, edges, area, repairs = _clean(vertices, faces, settings.max_hole_edges)
+    vertices, faces, edges, area, repairs = _clean(vertices, faces, settings.max_hole_edges, beside)
     bodies = _bodies(vertices, faces, edges, area)
     del vertices, faces, edges, area  # (the bodies hold their own arrays: 0.6 GB less for the copy at 8 M triangles)
     if not bodies or bodies[0].volume <= 0:

@@ -25,7 +25,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
@@ -154,13 +154,15 @@ def segment_ct(path: str | Path, settings: Settings, *,
 
 
 def load_input(path: str | Path, settings: Settings, *, units: Units = "auto",
-               working_copy: Callable[..., BoneMesh] = with_working_copy) -> BoneMesh:
+               working_copy: Callable[..., BoneMesh] = with_working_copy,
+               beside: Callable[..., Any] | None = None) -> BoneMesh:
     """The tibia mesh of an input: read a mesh file, or segment a CT volume (either with the working copy of a
-    surface denser than the tolerance needs, ``mesh.working``, made by ``working_copy``)."""
+    surface denser than the tolerance needs, ``mesh.working``, made by ``working_copy``; a mesh's cleanup
+    partly ``beside``, ``load_bone``)."""
     if is_volume(path):
         return segment_ct(path, settings, working_copy=working_copy)
     return load_bone(path, units=units, settings=settings.mesh, plausible=settings.units, keep=kept_body(settings),
-                     working_copy=working_copy)
+                     working_copy=working_copy, beside=beside)
 
 
 def working_copy_alone(bone: BoneMesh, settings: MeshSettings, area_mm2: float | None,
@@ -467,7 +469,7 @@ def reconstruct(
     with timings.stage("input"):
         if until == "models" and executor is None:  # the analysis needs the full mesh's tree
             with executor_for(settings.pipeline.background_jobs) as ex:
-                bone = load_input(source, settings, units=units, working_copy=copy_beside_tree(ex))
+                bone = load_input(source, settings, units=units, working_copy=copy_beside_tree(ex), beside=ex.submit)
         else:
             bone = load_input(source, settings, units=units)
     return reconstruct_bone(bone, out_dir, settings, until=until, timings=timings, executor=executor,
