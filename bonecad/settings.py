@@ -189,6 +189,7 @@ class TSplineSettings:
     fit_fairness_weight: float
     max_control_points: int
     fit_point_spacing_mm: float
+    fit_copy_edge_mm: float
     initial_s_intervals: int
     initial_t_spacing_mm: float
     apex_rows: int

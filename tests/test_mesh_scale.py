@@ -282,3 +282,28 @@ def test_halves_simplified_on_both_cores(dense):
     assert np.array_equal(work.vertices, alone.vertices) and np.array_equal(work.faces, alone.faces)
     assert is_closed_and_oriented(work.faces) and work.triangle_count <= target * 1.01
     assert work.extra["max_deviation_mm"] <= settings.working_max_deviation_mm
+
+
+def test_fit_points_of_a_dense_mesh_come_from_a_coarser_copy(dense, phantom_frame):
+    """The T-spline fit's points on a dense mesh: the working copy simplified further to triangles of about
+    ``fit_copy_edge_mm`` (fewer points than the copy's vertices, the same surface); a mesh as read is used as is."""
+    from dataclasses import replace
+
+    from bonecad.mesh.sampling import median_edge_mm, triangle_areas
+    from bonecad.mesh.working import coarser_copy
+    from bonecad.tspline_model.model import fit_points
+
+    settings = SETTINGS.tspline
+    work = dense.work
+    vertices, faces = coarser_copy(work.vertices, work.faces, settings.fit_copy_edge_mm)
+    area = triangle_areas(work.vertices, work.faces).sum()
+    assert abs(len(faces) - area / (np.sqrt(3) / 4 * settings.fit_copy_edge_mm**2)) < 0.02 * len(faces)
+    assert len(faces) < 0.8 * work.triangle_count and is_closed_and_oriented(faces)
+    assert TriangleLocator(work.vertices, work.faces).distance(vertices).max() < 0.05
+    assert coarser_copy(vertices, faces, settings.fit_copy_edge_mm / 2)[1] is faces  # coarse already: itself
+    points, weights = fit_points(dense, phantom_frame, settings)
+    # (simplified in bone coordinates there: the same copy up to rounding)
+    assert abs(len(points) - len(vertices)) < 0.01 * len(vertices) and abs(weights.sum() - area) < 0.01 * area
+    assert median_edge_mm(vertices, faces) <= settings.fit_point_spacing_mm
+    as_read, _ = fit_points(replace(dense, working=None), phantom_frame, settings)
+    assert len(as_read) == len(dense.vertices)

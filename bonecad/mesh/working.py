@@ -120,6 +120,13 @@ def halves_simplified(vertices: np.ndarray, faces: np.ndarray, target: int, *,
     return joined(elsewhere.result() if elsewhere is not None else simplified_once(*first, keep_border=True), done)
 
 
+def coarser_copy(vertices: np.ndarray, faces: np.ndarray, edge_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """A working copy simplified further, in one pass, to equilateral triangles of about ``edge_mm`` over its
+    area (vertices mm, faces); the copy itself when it has no more triangles than that."""
+    target = int(np.ceil(float(triangle_areas(vertices, faces).sum()) / (_UNIT_TRIANGLE_MM2 * edge_mm**2)))
+    return (vertices, faces) if len(faces) <= target else simplified_once(vertices, faces, target)
+
+
 def first_pass_target(vertices: np.ndarray, faces: np.ndarray, settings: MeshSettings, *,
                       area_mm2: float | None = None) -> int | None:
     """The triangles of the first pass towards the working copy when it takes more than one

@@ -32,6 +32,7 @@ from bonecad.errors import KernelError
 from bonecad.occ.pickling import ShapePickling
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.sampling import fit_samples
+from bonecad.mesh.working import coarser_copy
 from bonecad.settings import TSplineSettings
 from bonecad.splines.tspline import TSpline
 
@@ -147,8 +148,12 @@ def tolerances(settings: TSplineSettings) -> FitTolerances:
 
 def fit_points(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings) -> tuple[np.ndarray, np.ndarray]:
     """The fit's points in bone coordinates and their area weights (mm, mm^2): the mesh vertices, or
-    on a coarse mesh its edge midpoints, which integrate its facets (its vertices are their corners)."""
-    return fit_samples(*bone_coordinates(bone, frame), settings.fit_point_spacing_mm)
+    on a coarse mesh its edge midpoints, which integrate its facets (its vertices are their corners). A dense
+    mesh's working copy is simplified further for them, to triangles of about ``fit_copy_edge_mm``."""
+    vertices, faces = bone_coordinates(bone, frame)
+    if bone.working is not None:
+        vertices, faces = coarser_copy(vertices, faces, settings.fit_copy_edge_mm)
+    return fit_samples(vertices, faces, settings.fit_point_spacing_mm)
 
 
 @dataclass(frozen=True)
