@@ -117,7 +117,7 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, beside:
     border or non-manifold edges or vertices is cleaned and repaired by MeshLab
     from the arrays as given, as before.
     beside : runs part of the work elsewhere (an executor's ``submit``) while this process does the rest:
-        half the vertex merging, then the face checks while this process counts the edges of the faces
+        half the vertex merging, then the face checks while this process reads the topology of the faces
         as merged (used when the checks drop no face, the common case).
     """
     repairs: list[str] = []
@@ -130,7 +130,7 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, beside:
     merged_vertices, merged = merge_duplicate_vertices(vertices, faces, beside=beside)
     merged_vertices = merged_vertices.astype(np.float64, copy=False)
     checks = beside(_face_checks, merged_vertices, merged) if beside is not None else None
-    merged_edges = edge_counts(merged, len(merged_vertices)) if checks is not None else None
+    merged_topology = _topology(merged, len(merged_vertices)) if checks is not None else None
     duplicate, merged_area = checks.result() if checks is not None else _face_checks(merged_vertices, merged)
     unique, area = _rows(merged, ~duplicate), _rows(merged_area, ~duplicate)
     positive = area > 0
@@ -139,9 +139,9 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, beside:
     used[proper] = True
     kept_vertices, kept_faces = ((merged_vertices, proper) if used.all() else
                                  (merged_vertices[used], (np.cumsum(used) - 1)[proper]))
-    edges = merged_edges if kept_faces is merged and merged_edges is not None else edge_counts(kept_faces,
-                                                                                                len(kept_vertices))
-    if edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(kept_faces, edges):
+    edges, manifold = (merged_topology if kept_faces is merged and merged_topology is not None else
+                       _topology(kept_faces, len(kept_vertices)))
+    if not manifold:
         vertices, faces = _meshlab_clean(vertices, faces, max_hole_edges, note)
         return vertices, faces, edge_counts(faces, len(vertices)), triangle_areas(vertices, faces), repairs
     note("merged duplicate vertices", size, size := (len(merged_vertices), len(merged)))
@@ -149,6 +149,12 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, beside:
     note("removed degenerate (zero-area) faces", size, size := (len(merged_vertices), len(proper)))
     note("removed unreferenced vertices", size, (len(kept_vertices), len(kept_faces)))
     return kept_vertices, kept_faces, edges, area, repairs
+
+
+def _topology(faces: np.ndarray, vertex_count: int) -> tuple[EdgeCounts, bool]:
+    """The faces' edges, and whether they form a closed manifold (no border or non-manifold edge or vertex)."""
+    edges = edge_counts(faces, vertex_count)
+    return edges, not (edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(faces, edges))
 
 
 def _face_checks(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
