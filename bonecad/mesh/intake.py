@@ -23,8 +23,9 @@ from bonecad.errors import InputError
 from bonecad.mesh.bodies import body_roles, body_shape, check_not_fused, choose_tibia, proximal_direction
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 from bonecad.mesh.sampling import triangle_areas
-from bonecad.mesh.topology import (EdgeCounts, duplicate_faces, edge_counts, merge_duplicate_vertices,
-                                   non_manifold_vertices, signed_volumes, vertex_components)
+from bonecad.mesh.topology import (EdgeCounts, centroids_and_volumes, duplicate_faces, edge_counts,
+                                   merge_duplicate_vertices, non_manifold_vertices, signed_volumes,
+                                   vertex_components)
 from bonecad.mesh.working import with_working_copy
 from bonecad.settings import MeshSettings, UnitsSettings
 
@@ -217,15 +218,8 @@ def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts, area: np
     narrow = face_body.astype(np.int16) if count <= np.iinfo(np.int16).max else face_body  # (a radix sort)
     face_order = np.argsort(narrow, kind="stable")  # each body's faces in input order
     face_bounds = np.r_[0, np.cumsum(np.bincount(face_body, minlength=count))]
-    corner = [np.take(vertices, faces[:, k], axis=0) for k in range(3)]
-    centre_sum = corner[0] + corner[1] + corner[2]  # three times the triangle centres
-    del corner
-    weighted_centre = np.stack([np.bincount(face_body, area * (centre_sum[:, k] / 3.0), minlength=count)
-                                for k in range(3)], axis=1)
-    del centre_sum
     areas = np.bincount(face_body, area, minlength=count)
-    centroids = weighted_centre / np.maximum(areas, 1e-300)[:, None]
-    volumes = signed_volumes(vertices, faces, face_body, count)
+    centroids, volumes = centroids_and_volumes(vertices, faces, area, face_body, count)
     bodies = []
     for b in range(count):
         body_faces = faces[face_order[face_bounds[b] : face_bounds[b + 1]]]

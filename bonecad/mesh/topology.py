@@ -256,9 +256,31 @@ def vertex_components(edges: EdgeCounts) -> tuple[int, np.ndarray]:
 
 def signed_volumes(vertices: np.ndarray, faces: np.ndarray, body_of_face: np.ndarray, bodies: int) -> np.ndarray:
     """(bodies,) mm^3: each body's enclosed volume, positive when its faces point outward."""
-    a, b, c = (np.take(vertices, faces[:, k], axis=0) for k in range(3))
-    # a . (b x c), written out (np.cross's own temporaries cost more than the sum on a dense mesh)
-    six = a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1])
-    six += a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
-    six += a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
-    return np.bincount(body_of_face, six, minlength=bodies) / 6.0
+    return np.bincount(body_of_face, _six_volumes(*_corner_columns(vertices, faces)), minlength=bodies) / 6.0
+
+
+def centroids_and_volumes(vertices: np.ndarray, faces: np.ndarray, area: np.ndarray, body_of_face: np.ndarray,
+                          bodies: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each body's centroid (bodies, 3), the mean of its triangles' centres weighted by their ``area`` (m,),
+    and its ``signed_volumes`` (bodies,), from one gathering of the corners."""
+    a, b, c = _corner_columns(vertices, faces)
+    volumes = np.bincount(body_of_face, _six_volumes(a, b, c), minlength=bodies) / 6.0
+    weighted = np.stack([np.bincount(body_of_face, area * ((a[k] + b[k] + c[k]) / 3.0), minlength=bodies)
+                         for k in range(3)], axis=1)
+    return weighted / np.maximum(np.bincount(body_of_face, area, minlength=bodies), 1e-300)[:, None], volumes
+
+
+def _corner_columns(vertices: np.ndarray, faces: np.ndarray) -> tuple[list[np.ndarray], ...]:
+    """The triangles' corners a, b, c, each as its coordinate columns [x, y, z] ((m,) each): gathered from
+    the vertices' columns, twice as fast as gathering rows on a dense mesh."""
+    columns = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64).T)
+    return tuple([np.take(columns[j], np.ascontiguousarray(faces[:, k])) for j in range(3)] for k in range(3))
+
+
+def _six_volumes(a: list[np.ndarray], b: list[np.ndarray], c: list[np.ndarray]) -> np.ndarray:
+    """(m,) six times the signed volume of the tetrahedron of each triangle and the origin, a . (b x c), written
+    out (np.cross's own temporaries cost more than the sum on a dense mesh)."""
+    six = a[0] * (b[1] * c[2] - b[2] * c[1])
+    six += a[1] * (b[2] * c[0] - b[0] * c[2])
+    six += a[2] * (b[0] * c[1] - b[1] * c[0])
+    return six
