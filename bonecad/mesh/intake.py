@@ -23,7 +23,7 @@ from bonecad.errors import InputError
 from bonecad.mesh.bodies import body_roles, body_shape, check_not_fused, choose_tibia, proximal_direction
 from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 from bonecad.mesh.sampling import triangle_areas
-from bonecad.mesh.topology import (EdgeCounts, centroids_and_volumes, duplicate_faces, edge_counts,
+from bonecad.mesh.topology import (EdgeCounts, body_measures, duplicate_faces, edge_counts,
                                    merge_duplicate_vertices, non_manifold_vertices, signed_volumes,
                                    vertex_components)
 from bonecad.mesh.working import with_working_copy
@@ -218,8 +218,7 @@ def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts, area: np
     narrow = face_body.astype(np.int16) if count <= np.iinfo(np.int16).max else face_body  # (a radix sort)
     face_order = np.argsort(narrow, kind="stable")  # each body's faces in input order
     face_bounds = np.r_[0, np.cumsum(np.bincount(face_body, minlength=count))]
-    areas = np.bincount(face_body, area, minlength=count)
-    centroids, volumes = centroids_and_volumes(vertices, faces, area, face_body, count)
+    areas, centroids, volumes = body_measures(vertices, faces, area, face_body, count)
     bodies = []
     for b in range(count):
         body_faces = faces[face_order[face_bounds[b] : face_bounds[b + 1]]]

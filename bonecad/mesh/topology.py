@@ -66,6 +66,10 @@ def _equal_row_groups(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order, np.flatnonzero(new)
 
 
+#: rows above which ``first_of_equal_rows`` splits its work when it may (fewer: a fork costs more than it saves)
+SPLIT_ROWS = 1_000_000
+
+
 def first_of_equal_rows(rows: np.ndarray, *, beside: Callable[..., Any] | None = None) -> np.ndarray:
     """(n,) for every row of ``rows`` (n, k) (float32/64 or int32/64), the index of the first row equal to it
     (exact equality of the bits, ``_equal_row_groups``).
@@ -85,10 +89,6 @@ def first_of_equal_rows(rows: np.ndarray, *, beside: Callable[..., Any] | None =
     first_of[parts[1]] = _first_of_part(rows, parts[1])
     first_of[parts[0]] = elsewhere.result()
     return first_of
-
-
-#: rows above which ``first_of_equal_rows`` splits its work when it may (fewer: a fork costs more than it saves)
-SPLIT_ROWS = 1_000_000
 
 
 def _first_of_part(rows: np.ndarray, part: np.ndarray | None) -> np.ndarray:
@@ -259,15 +259,17 @@ def signed_volumes(vertices: np.ndarray, faces: np.ndarray, body_of_face: np.nda
     return np.bincount(body_of_face, _six_volumes(*_corner_columns(vertices, faces)), minlength=bodies) / 6.0
 
 
-def centroids_and_volumes(vertices: np.ndarray, faces: np.ndarray, area: np.ndarray, body_of_face: np.ndarray,
-                          bodies: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each body's centroid (bodies, 3), the mean of its triangles' centres weighted by their ``area`` (m,),
-    and its ``signed_volumes`` (bodies,), from one gathering of the corners."""
+def body_measures(vertices: np.ndarray, faces: np.ndarray, area: np.ndarray, body_of_face: np.ndarray,
+                  bodies: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each body's area (bodies,), the sum of its triangles' ``area`` (m,); its centroid (bodies, 3), the mean
+    of its triangles' centres weighted by their area; and its ``signed_volumes`` (bodies,): one gathering of
+    the corners for both."""
     a, b, c = _corner_columns(vertices, faces)
     volumes = np.bincount(body_of_face, _six_volumes(a, b, c), minlength=bodies) / 6.0
     weighted = np.stack([np.bincount(body_of_face, area * ((a[k] + b[k] + c[k]) / 3.0), minlength=bodies)
                          for k in range(3)], axis=1)
-    return weighted / np.maximum(np.bincount(body_of_face, area, minlength=bodies), 1e-300)[:, None], volumes
+    areas = np.bincount(body_of_face, area, minlength=bodies)
+    return areas, weighted / np.maximum(areas, 1e-300)[:, None], volumes
 
 
 def _corner_columns(vertices: np.ndarray, faces: np.ndarray) -> tuple[list[np.ndarray], ...]:
