@@ -75,18 +75,36 @@ def test_equal_rows_split_between_two_processes(monkeypatch):
                 assert np.array_equal(topology.first_of_equal_rows(rows, beside=ex.submit), alone)
 
 
-@pytest.mark.parametrize("extra_face", [None, [0, 0, 1]], ids=["clean", "a degenerate face"])
-def test_cleanup_beside_gives_the_same_bone(dense, monkeypatch, extra_face):
-    """The runner's cleanup, half the merging and the face checks in forked jobs: the same bone, bit for bit,
-    as cleaned in one process, also when a face is dropped (the edges counted beside are then not used)."""
+def _tetrahedron_on(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """A small closed tetrahedron (4 triangles as 12 corners) outside a mesh, touching it at the first corner
+    of its first face only: a vertex of two fans, once the corners are merged."""
+    a, b, c = vertices[faces[0]]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal)
+    side = (b - a) / np.linalg.norm(b - a)
+    points = np.array([a, a + 2 * normal + side, a + 2 * normal + np.cross(normal, side), a + 3 * normal])
+    tetra = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    if np.einsum("ij,ij->i", points[tetra[:, 0]], np.cross(points[tetra[:, 1]], points[tetra[:, 2]])).sum() < 0:
+        tetra = tetra[:, ::-1]
+    return points[tetra].reshape(-1, 3)
+
+
+@pytest.mark.parametrize("extra", [None, "degenerate face", "pinched vertex"])
+def test_cleanup_beside_gives_the_same_bone(dense, monkeypatch, extra):
+    """The runner's cleanup, half the merging, the face checks, the vertices' fans and the bodies' measures in
+    forked jobs: the same bone, bit for bit, as cleaned in one process, also when a face is dropped (the
+    edges counted beside are then not used) and when a vertex joins two fans (the bodies read meanwhile are
+    not used: MeshLab repairs the mesh)."""
     from bonecad.mesh import topology
     from bonecad.run.executor import Fork
 
     monkeypatch.setattr(topology, "SPLIT_ROWS", 1000)
     corners = dense.vertices[dense.faces].reshape(-1, 3).astype(np.float32)  # an STL's unshared corners
+    if extra == "pinched vertex":
+        corners = np.vstack([corners, _tetrahedron_on(corners, np.arange(3)[None]).astype(np.float32)])
     faces = np.arange(len(corners)).reshape(-1, 3)
-    if extra_face is not None:
-        faces = np.vstack([faces, extra_face])
+    if extra == "degenerate face":
+        faces = np.vstack([faces, [0, 0, 1]])
 
     def cleaned(beside):
         return prepare_bone(corners, faces, source="soup", settings=SETTINGS.mesh, plausible=SETTINGS.units,
@@ -97,7 +115,8 @@ def test_cleanup_beside_gives_the_same_bone(dense, monkeypatch, extra_face):
         split = cleaned(ex.submit)
     assert np.array_equal(split.vertices, alone.vertices) and np.array_equal(split.faces, alone.faces)
     assert split.summary() == alone.summary()  # repairs and bodies
-    assert any("degenerate" in r for r in alone.repairs) == (extra_face is not None)
+    assert any("degenerate" in r for r in alone.repairs) == (extra == "degenerate face")
+    assert any("non-manifold vertices" in r for r in alone.repairs) == (extra == "pinched vertex")
 
 
 def test_edges_fans_and_duplicates():

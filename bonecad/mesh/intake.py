@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from collections.abc import Callable
 from typing import Any, Literal
@@ -25,7 +26,7 @@ from bonecad.mesh.bone_mesh import BodyInfo, BoneMesh
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.mesh.topology import (EdgeCounts, body_measures, duplicate_faces, edge_counts,
                                    merge_duplicate_vertices, non_manifold_vertices, signed_volumes,
-                                   vertex_components)
+                                   vertex_components, worth_a_job)
 from bonecad.mesh.working import with_working_copy
 from bonecad.settings import MeshSettings, UnitsSettings
 
@@ -108,30 +109,43 @@ def _binary_stl(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     return records["corners"].reshape(-1, 3), np.arange(3 * count, dtype=np.int64).reshape(-1, 3)
 
 
-def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, beside: Callable[..., Any] | None = None
-           ) -> tuple[np.ndarray, np.ndarray, EdgeCounts, np.ndarray, list[str]]:
-    """Cleanup; returns the cleaned arrays (vertices float64), their edges, the triangles' areas (mm^2, input
-    units) and a list of what was repaired.
+@dataclass(frozen=True)
+class _Cleaned:
+    """A cleaned mesh: vertices (float64), faces, their edges, the triangles' areas (mm^2, input units), what
+    was repaired, and ``manifold()``: whether the faces form a closed manifold (asked once; from a job
+    when ``_clean`` ran its last check beside)."""
 
-    Duplicate vertices and faces, degenerate faces and unreferenced vertices
-    are removed here (vectorised, in MeshLab's order); a mesh that then has
-    border or non-manifold edges or vertices is cleaned and repaired by MeshLab
-    from the arrays as given, as before.
+    vertices: np.ndarray
+    faces: np.ndarray
+    edges: EdgeCounts
+    area: np.ndarray
+    repairs: list[str]
+    manifold: Callable[[], bool]
+
+
+def _note(repairs: list[str], label: str, before: tuple[int, int], after: tuple[int, int]) -> None:
+    """Records in ``repairs`` what a cleanup step changed: (vertices, faces) counts before and after."""
+    if before != after:
+        repairs.append(f"{label}: vertices {before[0]}->{after[0]}, faces {before[1]}->{after[1]}")
+
+
+def _clean(vertices: np.ndarray, faces: np.ndarray, beside: Callable[..., Any] | None = None) -> _Cleaned:
+    """The vectorised cleanup: duplicate vertices and faces, degenerate faces and unreferenced vertices
+    removed (in MeshLab's order). A result that is not ``manifold()`` (border or non-manifold edges or
+    vertices) is not used: ``_repaired`` cleans the input with MeshLab instead.
+
     beside : runs part of the work elsewhere (an executor's ``submit``) while this process does the rest:
         half the vertex merging, then the face checks while this process reads the topology of the faces
-        as merged (used when the checks drop no face, the common case).
+        as merged (used when the checks drop no face, the common case), then, on a dense mesh, the count
+        of non-manifold vertices, so that the caller reads the bodies meanwhile.
     """
     repairs: list[str] = []
-
-    def note(label: str, before: tuple[int, int], after: tuple[int, int]) -> None:
-        if before != after:
-            repairs.append(f"{label}: vertices {before[0]}->{after[0]}, faces {before[1]}->{after[1]}")
-
+    note = partial(_note, repairs)
     size = (len(vertices), len(faces))
     merged_vertices, merged = merge_duplicate_vertices(vertices, faces, beside=beside)
     merged_vertices = merged_vertices.astype(np.float64, copy=False)
     checks = beside(_face_checks, merged_vertices, merged) if beside is not None else None
-    merged_topology = _topology(merged, len(merged_vertices)) if checks is not None else None
+    merged_topology = _topology(merged, len(merged_vertices), beside) if checks is not None else None
     duplicate, merged_area = checks.result() if checks is not None else _face_checks(merged_vertices, merged)
     unique, area = _rows(merged, ~duplicate), _rows(merged_area, ~duplicate)
     positive = area > 0
@@ -141,21 +155,37 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int, beside:
     kept_vertices, kept_faces = ((merged_vertices, proper) if used.all() else
                                  (merged_vertices[used], (np.cumsum(used) - 1)[proper]))
     edges, manifold = (merged_topology if kept_faces is merged and merged_topology is not None else
-                       _topology(kept_faces, len(kept_vertices)))
-    if not manifold:
-        vertices, faces = _meshlab_clean(vertices, faces, max_hole_edges, note)
-        return vertices, faces, edge_counts(faces, len(vertices)), triangle_areas(vertices, faces), repairs
+                       _topology(kept_faces, len(kept_vertices), beside))
     note("merged duplicate vertices", size, size := (len(merged_vertices), len(merged)))
     note("removed duplicate faces", size, size := (len(merged_vertices), len(unique)))
     note("removed degenerate (zero-area) faces", size, size := (len(merged_vertices), len(proper)))
     note("removed unreferenced vertices", size, (len(kept_vertices), len(kept_faces)))
-    return kept_vertices, kept_faces, edges, area, repairs
+    return _Cleaned(kept_vertices, kept_faces, edges, area, repairs, manifold)
 
 
-def _topology(faces: np.ndarray, vertex_count: int) -> tuple[EdgeCounts, bool]:
-    """The faces' edges, and whether they form a closed manifold (no border or non-manifold edge or vertex)."""
+def _repaired(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int) -> _Cleaned:
+    """MeshLab's cleanup and repairs (``_meshlab_clean``) of a mesh the vectorised cleanup leaves open or
+    non-manifold, with the same figures as ``_clean``'s."""
+    repairs: list[str] = []
+    note = partial(_note, repairs)
+    vertices, faces = _meshlab_clean(vertices, faces, max_hole_edges, note)
+    return _Cleaned(vertices, faces, edge_counts(faces, len(vertices)), triangle_areas(vertices, faces), repairs,
+                    lambda: True)
+
+
+def _topology(faces: np.ndarray, vertex_count: int, beside: Callable[..., Any] | None = None
+              ) -> tuple[EdgeCounts, Callable[[], bool]]:
+    """The faces' edges, and whether they form a closed manifold (no border or non-manifold edge or vertex),
+    as a function asked later: on a dense mesh (``worth_a_job``) with ``beside``, the vertices' fans are counted
+    in a job meanwhile (the last check, on a closed mesh whose every edge has two faces)."""
     edges = edge_counts(faces, vertex_count)
-    return edges, not (edges.border_edges or edges.non_manifold_edges or non_manifold_vertices(faces, edges))
+    if edges.border_edges or edges.non_manifold_edges:
+        return edges, lambda: False
+    if beside is None or not worth_a_job(len(faces)):
+        fans = non_manifold_vertices(faces, edges)
+        return edges, lambda: fans == 0
+    job = beside(non_manifold_vertices, faces, edges)
+    return edges, lambda: job.result() == 0
 
 
 def _face_checks(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -206,19 +236,24 @@ class _Body:
     watertight: bool  # every edge shared by two faces
 
 
-def _bodies(vertices: np.ndarray, faces: np.ndarray, edges: EdgeCounts, area: np.ndarray) -> list[_Body]:
+def _bodies(mesh: _Cleaned, beside: Callable[..., Any] | None = None) -> list[_Body]:
     """Split into connected bodies, each oriented coherently and outward; largest volume first.
 
-    area : (m,) the triangles' areas (mm^2)."""
+    beside : on a dense mesh (``worth_a_job``), the bodies' areas, centroids and volumes are summed in a job of it
+        (an executor's ``submit``) while this process splits the faces."""
+    vertices, faces, edges, area = mesh.vertices, mesh.faces, mesh.edges, mesh.area
     count, vertex_body = vertex_components(edges)
+    face_body = vertex_body[faces[:, 0]]
+    measures = (beside(body_measures, vertices, faces, area, face_body, count)
+                if beside is not None and worth_a_job(len(faces)) else None)
     edge_body = vertex_body[edges.low_vertex()]
     open_bodies = np.bincount(edge_body[edges.faces_per_edge != 2], minlength=count) > 0
     incoherent = np.bincount(edge_body[~edges.consistent], minlength=count) > 0
-    face_body = vertex_body[faces[:, 0]]
     narrow = face_body.astype(np.int16) if count <= np.iinfo(np.int16).max else face_body  # (a radix sort)
     face_order = np.argsort(narrow, kind="stable")  # each body's faces in input order
     face_bounds = np.r_[0, np.cumsum(np.bincount(face_body, minlength=count))]
-    areas, centroids, volumes = body_measures(vertices, faces, area, face_body, count)
+    areas, centroids, volumes = (measures.result() if measures is not None else
+                                 body_measures(vertices, faces, area, face_body, count))
     bodies = []
     for b in range(count):
         body_faces = faces[face_order[face_bounds[b] : face_bounds[b + 1]]]
@@ -321,9 +356,14 @@ def prepare_bone(
     keep : the body kept from a leg (``BoneProfile.body``): the tibia, found first (the other bodies' roles
         are read from their place beside it), or the femur it names; a single body is kept either way."""
     path = Path(source) if source else None
-    vertices, faces, edges, area, repairs = _clean(vertices, faces, settings.max_hole_edges, beside)
-    bodies = _bodies(vertices, faces, edges, area)
-    del vertices, faces, edges, area  # (the bodies hold their own arrays: 0.6 GB less for the copy at 8 M triangles)
+    cleaned = _clean(vertices, faces, beside)
+    closed = not (cleaned.edges.border_edges or cleaned.edges.non_manifold_edges)
+    bodies = _bodies(cleaned, beside) if closed else []  # (while the vertices' fans are counted: usually good)
+    if not cleaned.manifold():
+        cleaned = _repaired(vertices, faces, settings.max_hole_edges)
+        bodies = _bodies(cleaned)
+    repairs = cleaned.repairs
+    del vertices, faces, cleaned  # (the bodies hold their own arrays: 0.6 GB less for the copy at 8 M triangles)
     if not bodies or bodies[0].volume <= 0:
         raise InputError("has no closed body with a volume", path)
 

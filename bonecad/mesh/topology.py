@@ -70,6 +70,11 @@ def _equal_row_groups(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 SPLIT_ROWS = 1_000_000
 
 
+def worth_a_job(rows: int) -> bool:
+    """Whether work over ``rows`` rows (vertices, faces) is worth a background job: above ``SPLIT_ROWS``."""
+    return rows > SPLIT_ROWS
+
+
 def first_of_equal_rows(rows: np.ndarray, *, beside: Callable[..., Any] | None = None) -> np.ndarray:
     """(n,) for every row of ``rows`` (n, k) (float32/64 or int32/64), the index of the first row equal to it
     (exact equality of the bits, ``_equal_row_groups``).
@@ -78,7 +83,7 @@ def first_of_equal_rows(rows: np.ndarray, *, beside: Callable[..., Any] | None =
         process does the other half, for more than ``SPLIT_ROWS`` rows: equal rows have equal first
         columns, so the rows on either side of that column's median are grouped apart (the same answer).
     """
-    if beside is None or len(rows) <= SPLIT_ROWS:
+    if beside is None or not worth_a_job(len(rows)):
         return _first_of_part(rows, None)
     column = rows[:, 0]
     low = column <= np.median(column[:: max(1, len(rows) // 65536)])  # (a sample's median: halves near enough)

@@ -44,7 +44,7 @@ from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
 from bonecad.mesh.working import first_pass_target, halves_simplified, with_working_copy
 from bonecad.run.bones import bone_frame, bone_settings, kept_body, named_bone
-from bonecad.run.executor import Executor, InProcess, executor_for
+from bonecad.run.executor import Executor, InProcess, executor_for, freed_memory_reused
 from bonecad.settings import MeshSettings, Settings, load_profile
 from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
@@ -468,7 +468,7 @@ def reconstruct(
         out_dir = Path(tempfile.mkdtemp(prefix="bonecad-"))
     with timings.stage("input"):
         if until == "models" and executor is None:  # the analysis needs the full mesh's tree
-            with executor_for(settings.pipeline.background_jobs) as ex:
+            with freed_memory_reused(), executor_for(settings.pipeline.background_jobs) as ex:
                 bone = load_input(source, settings, units=units, working_copy=copy_beside_tree(ex), beside=ex.submit)
         else:
             bone = load_input(source, settings, units=units)
