@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from bonecad.errors import InputError
-from bonecad.run.executor import Fork, InProcess, executor_for, release_free_heap
+from bonecad.run.executor import Fork, InProcess, executor_for, freed_memory_reused, release_free_heap
 
 needs_fork = pytest.mark.skipif(not Fork.available(), reason="fork is not available on this platform")
 
@@ -162,6 +162,27 @@ def test_freed_heap_goes_back_to_the_system_before_a_fork():
     before = process.memory_info().rss
     assert release_free_heap()
     assert before - process.memory_info().rss > 100e6
+
+
+def test_large_arrays_come_from_the_heap_only_inside_freed_memory_reused():
+    """Inside the block a 256 MB array grows the heap (reused when freed, no fresh pages from mmap); after
+    it, with the heap's free top given back, a 256 MB array is mapped apart again (the heap does not grow)."""
+    import ctypes
+
+    libc = ctypes.CDLL(None)
+    libc.sbrk.restype = ctypes.c_void_p
+
+    def heap_growth() -> int:
+        before = libc.sbrk(0)
+        array = np.ones(2**25)  # 256 MB
+        grown = libc.sbrk(0) - before
+        del array
+        return grown
+
+    with freed_memory_reused():
+        assert heap_growth() >= 2**27
+    release_free_heap()
+    assert heap_growth() == 0
 
 
 def test_an_interrupt_inside_a_deferred_block_lands_after_it():
