@@ -135,9 +135,9 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, beside: Callable[..., Any] |
     vertices) is not used: ``_repaired`` cleans the input with MeshLab instead.
 
     beside : runs part of the work elsewhere (an executor's ``submit``) while this process does the rest:
-        half the vertex merging, then the face checks while this process reads the topology of the faces
-        as merged (used when the checks drop no face, the common case), then, on a dense mesh, the count
-        of non-manifold vertices, so that the caller reads the bodies meanwhile.
+        half the vertex merging, then the face checks while this process counts the edges of the faces as
+        merged (used when the checks drop no face, the common case), then, on a dense mesh, the count of
+        non-manifold vertices, so that the caller reads the bodies meanwhile (``_manifold``).
     """
     repairs: list[str] = []
     note = partial(_note, repairs)
@@ -145,7 +145,7 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, beside: Callable[..., Any] |
     merged_vertices, merged = merge_duplicate_vertices(vertices, faces, beside=beside)
     merged_vertices = merged_vertices.astype(np.float64, copy=False)
     checks = beside(_face_checks, merged_vertices, merged) if beside is not None else None
-    merged_topology = _topology(merged, len(merged_vertices), beside) if checks is not None else None
+    merged_edges = edge_counts(merged, len(merged_vertices)) if checks is not None else None
     duplicate, merged_area = checks.result() if checks is not None else _face_checks(merged_vertices, merged)
     unique, area = _rows(merged, ~duplicate), _rows(merged_area, ~duplicate)
     positive = area > 0
@@ -154,8 +154,9 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, beside: Callable[..., Any] |
     used[proper] = True
     kept_vertices, kept_faces = ((merged_vertices, proper) if used.all() else
                                  (merged_vertices[used], (np.cumsum(used) - 1)[proper]))
-    edges, manifold = (merged_topology if kept_faces is merged and merged_topology is not None else
-                       _topology(kept_faces, len(kept_vertices), beside))
+    edges = (merged_edges if kept_faces is merged and merged_edges is not None else
+             edge_counts(kept_faces, len(kept_vertices)))
+    manifold = _manifold(kept_faces, edges, beside)
     note("merged duplicate vertices", size, size := (len(merged_vertices), len(merged)))
     note("removed duplicate faces", size, size := (len(merged_vertices), len(unique)))
     note("removed degenerate (zero-area) faces", size, size := (len(merged_vertices), len(proper)))
@@ -173,19 +174,18 @@ def _repaired(vertices: np.ndarray, faces: np.ndarray, max_hole_edges: int) -> _
                     lambda: True)
 
 
-def _topology(faces: np.ndarray, vertex_count: int, beside: Callable[..., Any] | None = None
-              ) -> tuple[EdgeCounts, Callable[[], bool]]:
-    """The faces' edges, and whether they form a closed manifold (no border or non-manifold edge or vertex),
-    as a function asked later: on a dense mesh (``worth_a_job``) with ``beside``, the vertices' fans are counted
-    in a job meanwhile (the last check, on a closed mesh whose every edge has two faces)."""
-    edges = edge_counts(faces, vertex_count)
+def _manifold(faces: np.ndarray, edges: EdgeCounts, beside: Callable[..., Any] | None = None
+              ) -> Callable[[], bool]:
+    """Whether ``faces`` (with their ``edges``) form a closed manifold, no border or non-manifold edge or
+    vertex, as a function asked later: on a dense mesh (``worth_a_job``) with ``beside``, the vertices' fans
+    (the last check, on a mesh whose every edge has two faces) are counted in a job meanwhile."""
     if edges.border_edges or edges.non_manifold_edges:
-        return edges, lambda: False
+        return lambda: False
     if beside is None or not worth_a_job(len(faces)):
         fans = non_manifold_vertices(faces, edges)
-        return edges, lambda: fans == 0
+        return lambda: fans == 0
     job = beside(non_manifold_vertices, faces, edges)
-    return edges, lambda: job.result() == 0
+    return lambda: job.result() == 0
 
 
 def _face_checks(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

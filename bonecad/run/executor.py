@@ -308,8 +308,8 @@ def release_free_heap() -> bool:
     return True
 
 
-#: glibc's ``mallopt`` parameters, and the values its dynamic thresholds reach once large blocks were freed
-#: (the 64-bit maximum of the mmap threshold, twice it for the trim threshold; mmaps at once: the default)
+#: glibc's ``mallopt`` parameters, and the values its dynamic thresholds settle at once large blocks were freed:
+#: the mmap threshold at its 64-bit maximum (32 MB), the trim threshold twice it, mmaps at once the default
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4
 _GLIBC_SETTLED = ((_M_MMAP_MAX, 65536), (_M_MMAP_THRESHOLD, 32 * 2**20), (_M_TRIM_THRESHOLD, 64 * 2**20))
 
@@ -318,15 +318,16 @@ _GLIBC_SETTLED = ((_M_MMAP_MAX, 65536), (_M_MMAP_THRESHOLD, 32 * 2**20), (_M_TRI
 def freed_memory_reused() -> Iterator[None]:
     """A block in which this process (and the children it forks) reuses the memory its freed arrays held
     instead of the system zeroing fresh pages for each new one (glibc's ``mallopt``: no block from ``mmap``,
-    no trim of the heap's top on ``free``; ``release_free_heap`` before each fork still gives it back); after
-    it, the thresholds glibc's own reach on a dense mesh. For the intake of a dense mesh, whose arrays are
-    hundreds of MB each, each ``mmap``-ed and faulted in page by page by default: TLEM2 split 64-fold (7.7 M
-    triangles), reading to the working copy 32.5 / 33.4 -> 27.8 / 26.2 s wall, 14.8 / 14.6 -> 8.9 / 7.7 s
-    of system CPU, the same peak (3.19 GB resident); the heap's free memory is given back when the block
-    ends. Not for the whole run: the stages after the intake
-    fork a job every second or so, and reused pages then cost copies (split 16-fold, a whole reconstruct
-    with it: 1.4 % more wall time, 0.27 s more system CPU, paired). Nothing happens where the C library
-    has no ``mallopt``."""
+    no trim of the heap's top on ``free``; ``release_free_heap`` before each fork still gives it back). When
+    it ends, glibc gets the thresholds its own dynamic ones reach on a dense mesh, and the heap's free memory
+    is given back. Nothing happens where the C library has no ``mallopt``.
+
+    For the intake of a dense mesh, whose arrays are hundreds of MB each, each ``mmap``-ed and faulted in
+    page by page by default: TLEM2 split 64-fold (7.7 M triangles), reading to the working copy 32.5 / 33.4
+    -> 27.8 / 26.2 s wall, 14.8 / 14.6 -> 8.9 / 7.7 s of system CPU, the same peak (3.19 GB resident). Not
+    for the whole run: the stages after the intake fork a job every second or so, and reused pages then cost
+    copies (split 16-fold, a whole reconstruct with it: 1.4 % more wall time, 0.27 s more system CPU,
+    paired)."""
     try:
         mallopt = ctypes.CDLL(None).mallopt
     except AttributeError:
