@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from bonecad.errors import InputError
-from bonecad.run.executor import Fork, InProcess, executor_for, freed_memory_reused, release_free_heap
+from bonecad.run.executor import Fork, InProcess, executor_for, release_free_heap
 
 needs_fork = pytest.mark.skipif(not Fork.available(), reason="fork is not available on this platform")
 
