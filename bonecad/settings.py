@@ -296,11 +296,13 @@ class PatchSettings:
 @dataclass(frozen=True)
 class PipelineSettings:
     """The runner: which models to build, whether independent stages run on the second core, which bone
-    (a profile of data/bones, or "auto": recognised)."""
+    (a profile of data/bones, or "auto": recognised), whether a reconstruction's arrays may live on
+    transparent huge pages (``run.executor.huge_pages``)."""
 
     models: tuple[ModelName, ...]
     background_jobs: bool
     bone: BoneChoice
+    huge_pages: bool
 
 
 @dataclass(frozen=True)

@@ -189,6 +189,48 @@ def test_large_arrays_come_from_the_heap_only_inside_freed_memory_reused():
     assert done.stdout.split() == ["True", "False"]
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="transparent huge pages are Linux's")
+def test_no_huge_pages_inside_the_block_nor_in_its_children():
+    """Inside ``huge_pages(False)`` the process and a child it forks are barred from transparent huge pages, and
+    a 64 MB array (numpy asks for huge pages) has none; after the block the process's earlier choice is back.
+    In a new process, whose flag starts cleared."""
+    script = textwrap.dedent("""
+        import ctypes, re
+        import numpy as np
+        from bonecad.run.executor import Fork, huge_pages
+
+        prctl = ctypes.CDLL(None).prctl
+        def barred() -> int:
+            return prctl(42, 0, 0, 0, 0)  # PR_GET_THP_DISABLE
+
+        def huge_kb(array) -> int:  # over the mappings the array spans (numpy's madvise splits them)
+            start, end = array.ctypes.data, array.ctypes.data + array.nbytes
+            with open("/proc/self/smaps") as smaps:
+                lines = smaps.read().splitlines()
+            kb, inside = 0, False
+            for line in lines:
+                span = re.match(r"([0-9a-f]+)-([0-9a-f]+) ", line)
+                if span:
+                    inside = int(span[1], 16) < end and start < int(span[2], 16)
+                elif inside and line.startswith("AnonHugePages:"):
+                    kb += int(line.split()[1])
+            return kb
+
+        with huge_pages(False):
+            array = np.ones(2**23)
+            with Fork() as ex:
+                child = ex.submit(barred).result()
+            inside = (barred(), child, huge_kb(array))
+            with huge_pages(True):
+                allowed = barred()
+            again = barred()
+        print(*inside, allowed, again, barred())
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["1", "1", "0", "0", "1", "0"]
+
+
 def test_an_interrupt_inside_a_deferred_block_lands_after_it():
     """Ctrl-C during a fork, the stopping of the children or the removal of a staging folder is held until
     that bookkeeping is done, then raised."""

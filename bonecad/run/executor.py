@@ -54,6 +54,7 @@ log = logging.getLogger(__name__)
 #: seconds a child is given to end after SIGTERM before it is killed
 _GRACE_S = 2.0
 _PR_SET_PDEATHSIG = 1
+_PR_SET_THP_DISABLE, _PR_GET_THP_DISABLE = 41, 42
 #: seconds between a failed child's signals to its parent
 _NUDGE_S = 0.2
 
@@ -341,6 +342,28 @@ def freed_memory_reused() -> Iterator[None]:
         for param, value in _GLIBC_SETTLED:
             mallopt(param, value)
         release_free_heap()  # (what the block freed and kept, given back)
+
+
+@contextmanager
+def huge_pages(allowed: bool) -> Iterator[None]:
+    """A block in which this process, and the children it forks, get transparent huge pages (2 MB) or not
+    (Linux ``prctl`` PR_SET_THP_DISABLE; numpy asks for them on every array of 4 MB and more). Where the
+    first touch of a page costs a hypervisor fault, a huge page faults in 2 MB of fresh memory at once
+    while small ones reuse pages freed moments ago (``[pipeline] huge_pages`` has the figures). When it
+    ends, the process's previous choice is back. Nothing happens where there is no such ``prctl``."""
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except AttributeError:
+        yield
+        return
+    before = prctl(_PR_GET_THP_DISABLE, 0, 0, 0, 0)
+    if before < 0 or prctl(_PR_SET_THP_DISABLE, int(not allowed), 0, 0, 0) != 0:
+        yield  # (not Linux, or a kernel without the option)
+        return
+    try:
+        yield
+    finally:
+        prctl(_PR_SET_THP_DISABLE, before, 0, 0, 0)
 
 
 def executor_for(background: bool) -> Executor:

@@ -44,7 +44,7 @@ from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
 from bonecad.mesh.working import first_pass_target, halves_simplified, with_working_copy
 from bonecad.run.bones import bone_frame, bone_settings, kept_body, named_bone
-from bonecad.run.executor import Executor, InProcess, executor_for, freed_memory_reused
+from bonecad.run.executor import Executor, InProcess, executor_for, freed_memory_reused, huge_pages
 from bonecad.settings import MeshSettings, Settings, load_profile
 from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
@@ -466,14 +466,17 @@ def reconstruct(
     timings = Timings()
     if out_dir is None:
         out_dir = Path(tempfile.mkdtemp(prefix="bonecad-"))
-    with timings.stage("input"):
-        if until == "models" and executor is None:  # the analysis needs the full mesh's tree
-            with freed_memory_reused(), executor_for(settings.pipeline.background_jobs) as ex:
-                bone = load_input(source, settings, units=units, working_copy=copy_beside_tree(ex), beside=ex.submit)
-        else:
-            bone = load_input(source, settings, units=units)
-    return reconstruct_bone(bone, out_dir, settings, until=until, timings=timings, executor=executor,
-                            progress=progress)
+    with huge_pages(settings.pipeline.huge_pages):
+        with timings.stage("input"):
+            if until == "models" and executor is None:  # the analysis needs the full mesh's tree
+                # (huge pages for the intake's large arrays, which reuse their memory rather than fork)
+                with huge_pages(True), freed_memory_reused(), executor_for(settings.pipeline.background_jobs) as ex:
+                    bone = load_input(source, settings, units=units, working_copy=copy_beside_tree(ex),
+                                      beside=ex.submit)
+            else:
+                bone = load_input(source, settings, units=units)
+        return reconstruct_bone(bone, out_dir, settings, until=until, timings=timings, executor=executor,
+                                progress=progress)
 
 
 def run_demo(out_dir: str | Path, settings: Settings | None = None, progress: FitProgress | None = None
@@ -490,7 +493,7 @@ def run_demo(out_dir: str | Path, settings: Settings | None = None, progress: Fi
 
     settings = settings if settings is not None else Settings.load()
     timings = Timings()
-    with staged_output(out_dir) as stage_dir:
+    with huge_pages(settings.pipeline.huge_pages), staged_output(out_dir) as stage_dir:
         with timings.stage("phantom tibia and its CT"):
             phantom = phantom_tibia(TibiaParameters(), settings=settings.mesh, plausible=settings.units)
             phantom.to_trimesh().export(stage_dir / "phantom.stl")
