@@ -7,7 +7,7 @@ bone), and this process's CPU with its children's (the workers). The phantoms (v
 meshed at the shipped phantom's 1 mm) are made first on a cluster of the same size into ``--phantoms`` (kept,
 so a second run skips them) and are not timed. The 2 cores are shared: compare the CPU figures, not the wall.
 
-Run: python benchmarks/bench_cohort.py [--bones N] [--workers W] [--phantoms DIR]
+Run: python benchmarks/bench_cohort.py [--bones N] [--workers W] [--phantoms DIR] [--config TOML]
 """
 from __future__ import annotations
 
@@ -34,8 +34,9 @@ def main() -> None:
     parser.add_argument("--bones", type=int, default=100)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--phantoms", type=Path, default=Path(tempfile.gettempdir()) / "bonecad-bench-cohort")
+    parser.add_argument("--config", type=Path, help="TOML file overriding defaults (as bonecad's --config)")
     args = parser.parse_args()
-    settings = Settings.load().replace("cohort", workers=args.workers)
+    settings = Settings.load(args.config).replace("cohort", workers=args.workers)
 
     started = time.perf_counter()
     with DaskExecutor(workers=args.workers) as ex:

@@ -46,7 +46,7 @@ from bonecad.mesh.intake import MESH_SUFFIXES, Units
 from bonecad.run.bones import bone_frame, bone_settings
 from bonecad.run.cluster import DaskExecutor
 from bonecad.run.shapes import fit_figures, load_surface, save_surface, template_fit_bone
-from bonecad.run.executor import Executor
+from bonecad.run.executor import Executor, huge_pages
 from bonecad.run.pipeline import VOLUME_SUFFIXES, load_input
 from bonecad.settings import Settings
 from bonecad.staging import staged_file, staged_output
@@ -162,7 +162,7 @@ def cohort_job(source: BoneSource, settings: Settings) -> BoneRecord:
     figures: dict[str, float] = {}
     points = surface = None
     try:
-        with threadpool_limits(limits=1, user_api="blas"):
+        with threadpool_limits(limits=1, user_api="blas"), huge_pages(settings.pipeline.huge_pages):
             side, parameters, figures, points, surface = _bone_results(source, settings)
     except InputError as exc:
         status, error = "bad input", str(exc)
