@@ -17,7 +17,7 @@ from functools import cached_property
 
 import numpy as np
 
-from bonecad.mesh.sampling import triangle_areas
+from bonecad.mesh.sampling import spatial_order, triangle_areas
 
 
 @dataclass(frozen=True)
@@ -133,6 +133,11 @@ class TriangleLocator:
     def triangle_areas(self) -> np.ndarray:
         """(m,) mm^2: the area of each triangle (computed at the first use, then kept)."""
         return triangle_areas(self.vertices, self.triangles)
+
+    @cached_property
+    def spatial_order(self) -> np.ndarray:
+        """(m,) the triangles in ``sampling.spatial_order`` (computed at the first use, then kept)."""
+        return spatial_order(self.vertices, self.triangles)
 
     def _nearest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(squared distance (N,) mm^2, nearest triangle (N,)) of ``points`` (N, 3), asked of the tree in a

@@ -26,6 +26,33 @@ def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * np.sqrt(x * x + y * y + z * z)
 
 
+#: (shift, mask) steps that spread a 21-bit integer's bits three apart (bit k to bit 3 k), for Morton codes
+_SPREAD_STEPS = ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F), (4, 0x10C30C30C30C30C3),
+                 (2, 0x1249249249249249))
+
+
+def _spread_bits(values: np.ndarray) -> np.ndarray:
+    """(n,) uint64: each of ``values``' (n,) low 21 bits moved to bit 3 k (the others zero)."""
+    x = values.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in _SPREAD_STEPS:
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def spatial_order(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(f,) the triangles in the Z-order (Morton order) of their centroids on a 2^21 grid over the mesh's
+    bounding box: triangles close in the order are close on the surface, so equal slices of the order's
+    area are compact patches (``sample_surface`` draws one sample in each)."""
+    centroids = (np.take(vertices, faces[:, 0], axis=0) + np.take(vertices, faces[:, 1], axis=0)
+                 + np.take(vertices, faces[:, 2], axis=0))
+    low = centroids.min(axis=0)
+    extent = max(float((centroids.max(axis=0) - low).max()), 1e-300)
+    cells = ((centroids - low) * ((2**21 - 1) / extent)).astype(np.uint64)
+    code = _spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1))
+    code |= _spread_bits(cells[:, 2]) << np.uint64(2)
+    return np.argsort(code, kind="stable")
+
+
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(n,) mm^2: a third of the area of each vertex's triangles."""
     return np.bincount(faces.ravel(), np.repeat(triangle_areas(vertices, faces) / 3.0, 3), minlength=len(vertices))

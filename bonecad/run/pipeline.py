@@ -278,10 +278,11 @@ def reconstruct_bone(
                     importlib.import_module(module)
             if until == "models":
                 with timings.stage("closest-point tree of the mesh"):
-                    # the tree, its vertex normals and triangle areas, built in idle time for both models'
-                    # analysis (their jobs fork later); the working copy's for their 3-D views; the voxel step
-                    # for the T-spline fit and its noise (a job of its own)
-                    _ = bone.locator.vertex_normals, bone.locator.triangle_areas, bone.work.locator.vertex_normals
+                    # the tree, its vertex normals, triangle areas and spatial order, built in idle time for
+                    # both models' analysis (their jobs fork later); the working copy's for their 3-D views; the
+                    # voxel step for the T-spline fit and its noise (a job of its own)
+                    _ = bone.locator.vertex_normals, bone.locator.triangle_areas, bone.locator.spatial_order
+                    _ = bone.work.locator.vertex_normals
                     _ = bone.voxel_step_mm
             with timings.stage("waiting for the frame and the contour curves"):
                 frame, contours, front_timings = front.result()
