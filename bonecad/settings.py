@@ -92,14 +92,12 @@ class ImagingSettings:
 
 @dataclass(frozen=True)
 class AnatomySettings:
-    """Anatomical frame: articular-surface search (shares of the length), the plateau outline's points for its
-    ellipse (equal arc-length steps), metaphysis flare ratios
+    """Anatomical frame: articular-surface search (shares of the length), metaphysis flare ratios
     (section area / narrowest shaft area), and region boundaries (mm above the plafond centre;
     0: found from the flare)."""
 
     plateau_search_share: float
     plafond_search_share: float
-    plateau_outline_points: int
     distal_flare_ratio: float
     proximal_flare_ratio: float
     distal_boundary_mm: float

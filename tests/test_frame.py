@@ -67,25 +67,6 @@ def test_rigid_motion_moves_every_entity(phantom, phantom_frame, quaternion, shi
     assert np.linalg.norm(moved.local_proximal_axis - (f.local_proximal_axis @ rotation.T + shift), axis=1).max() < 0.5
 
 
-def test_frame_does_not_follow_the_triangles(phantom, phantom_frame):
-    """The same surface in four times the triangles (each split at its edge midpoints, then simplified to its
-    working copy, as a dense scan is) has the same frame: the plateau's ellipse is fitted to its outline at
-    equal arc-length steps, not to the crossing points (those moved the plateau centre 0.031 mm and turned
-    the axes 0.16 degrees)."""
-    from bonecad.mesh.sampling import midpoint_subdivision
-    from bonecad.mesh.working import with_working_copy
-    from tests.defaults import SETTINGS
-
-    vertices, faces = midpoint_subdivision(phantom.vertices, phantom.faces)
-    split = with_working_copy(BoneMesh(vertices=vertices, faces=faces, source="split"), SETTINGS.mesh)
-    assert split.working is not None
-    again = bonecad.anatomical_frame(split)
-    assert np.linalg.norm(again.plateau_centre - phantom_frame.plateau_centre) < 0.005
-    assert np.linalg.norm(again.plafond_centre - phantom_frame.plafond_centre) < 0.01
-    for name in ("lateral", "anterior", "proximal"):
-        assert _angle_deg(getattr(again, name), getattr(phantom_frame, name)) < 0.02, name
-
-
 def test_mirrored_right_tibia_is_left_and_mirrored(phantom, phantom_frame):
     mirrored = bonecad.anatomical_frame(_moved(phantom, np.eye(3), np.zeros(3), mirror=True))
     f = phantom_frame

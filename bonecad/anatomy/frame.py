@@ -17,7 +17,7 @@ from bonecad.errors import FitError, InputError
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.sampling import triangle_areas
 from bonecad.settings import AnatomySettings, UnitsSettings
-from bonecad.mesh.sections import evenly_spaced, plane_basis, section_mesh, section_stack
+from bonecad.mesh.sections import plane_basis, section_mesh, section_stack
 from bonecad.anatomy.ellipse import fit_ellipse
 from bonecad.anatomy.landmarks import FemurLandmarks
 
@@ -331,7 +331,7 @@ def _plateau(vertices, faces, centre, z, heights, hi, length, anat) -> PlateauEl
     loops = section.loops()
     if not loops:
         raise FitError("no section through the tibial plateau")
-    outline = evenly_spaced(loops[0], anat.plateau_outline_points)
+    outline = loops[0]
     u, v = plane_basis(z)
     origin = centre + levels[best] * z
     pts = np.column_stack([(outline - origin) @ u, (outline - origin) @ v])

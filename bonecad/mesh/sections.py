@@ -147,15 +147,6 @@ def section_stack(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, a
     return areas, centroids
 
 
-def evenly_spaced(loop: np.ndarray, count: int) -> np.ndarray:
-    """(count, d) points at equal arc-length steps round the closed polyline ``loop`` (p, d), from its first
-    point: the same curve whatever the mesh's triangles, so a fit to it weighs every mm of outline alike."""
-    closed = np.vstack([loop, loop[:1]])
-    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))]
-    at = np.linspace(0.0, arc[-1], count, endpoint=False)
-    return np.column_stack([np.interp(at, arc, closed[:, k]) for k in range(closed.shape[1])])
-
-
 def line_crossings(loop: np.ndarray, axis: int, value: float) -> np.ndarray:
     """Sorted values of the other coordinate where a closed (p, 2) polygon crosses the line
     ``loop[:, axis] == value`` (mm); empty when the line misses it."""
