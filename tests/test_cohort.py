@@ -371,3 +371,17 @@ def test_local_workers_keep_glibcs_own_memory_thresholds():
     system (a bone then cost 4-6 s of system CPU instead of 0.3-0.6 s): the local cluster unsets it."""
     with DaskExecutor(workers=1) as ex, ex.shielded():
         assert ex.submit(os.environ.get, "MALLOC_TRIM_THRESHOLD_").result() is None
+
+
+def _pymeshlab_loaded() -> bool:
+    import sys
+
+    return "pymeshlab" in sys.modules
+
+
+def test_workers_load_pymeshlab_in_their_main_thread():
+    """pymeshlab first loaded in a task's thread and used there makes the worker abort as it exits (glibc
+    "malloc_consolidate(): unaligned fastbin chunk detected"): every worker loads it in its main thread on
+    joining, before any task runs."""
+    with DaskExecutor(workers=1) as ex, ex.shielded():
+        assert all(ex.client.run(_pymeshlab_loaded).values())
