@@ -43,11 +43,11 @@ def spatial_order(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(f,) the triangles in the Z-order (Morton order) of their centroids on a 2^21 grid over the mesh's
     bounding box: triangles close in the order are close on the surface, so equal slices of the order's
     area are compact patches (``sample_surface`` draws one sample in each)."""
-    centroids = (np.take(vertices, faces[:, 0], axis=0) + np.take(vertices, faces[:, 1], axis=0)
-                 + np.take(vertices, faces[:, 2], axis=0))
-    low = centroids.min(axis=0)
-    extent = max(float((centroids.max(axis=0) - low).max()), 1e-300)
-    cells = ((centroids - low) * ((2**21 - 1) / extent)).astype(np.uint64)
+    corner_sums = (np.take(vertices, faces[:, 0], axis=0) + np.take(vertices, faces[:, 1], axis=0)
+                   + np.take(vertices, faces[:, 2], axis=0))  # three times the centroids: the same grid cells
+    low = corner_sums.min(axis=0)
+    extent = max(float((corner_sums.max(axis=0) - low).max()), 1e-300)
+    cells = ((corner_sums - low) * ((2**21 - 1) / extent)).astype(np.uint64)
     code = _spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1))
     code |= _spread_bits(cells[:, 2]) << np.uint64(2)
     return np.argsort(code, kind="stable")
