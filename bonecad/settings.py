@@ -69,7 +69,8 @@ class ImagingSettings:
     HU, the level's clamp HU), the bodies of the threshold mask (fragment share of the largest body's voxels,
     long share of the longest length, side-by-side overlap and distance shares), the split of touching bones
     (erosion depth mm, part shares of voxels and length), the thin-cortex growth (voxels), Taubin smoothing
-    (iterations), and the working voxel (mm) finer scans are averaged up to."""
+    (iterations), the spline degree thick slices are interpolated with, and the working voxel (mm) finer scans
+    are averaged up to."""
 
     working_voxel_mm: float
     cortical_min_hu: float
@@ -88,6 +89,7 @@ class ImagingSettings:
     joint_space_mm: float
     joint_gain_hu_per_mm: float
     smoothing_iterations: int
+    slice_spline_degree: int
 
 
 @dataclass(frozen=True)

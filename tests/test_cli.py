@@ -141,12 +141,12 @@ def test_a_tibia_segmented_from_a_ct_is_fitted_to_the_stricter_target(phantom):
     from bonecad.settings import Settings
 
     settings = Settings.load()
-    assert settings.tspline.segmented_share_within_mm == (0.99, 0.2)
+    assert settings.tspline.segmented_share_within_mm == (0.99, 0.12)
     assert bone_settings(phantom, settings).tspline.target_share_within_mm == (0.99, 0.25)
     segmented = replace(phantom, segmented=True)
-    assert bone_settings(segmented, settings).tspline.target_share_within_mm == (0.99, 0.2)
-    strict = settings.replace("tspline", target_share_within_mm=[0.995, 0.15])
-    assert bone_settings(segmented, strict).tspline.target_share_within_mm == (0.995, 0.15)
+    assert bone_settings(segmented, settings).tspline.target_share_within_mm == (0.99, 0.12)
+    strict = settings.replace("tspline", target_share_within_mm=[0.995, 0.1])
+    assert bone_settings(segmented, strict).tspline.target_share_within_mm == (0.995, 0.1)
 
 
 class _Terminal(io.StringIO):

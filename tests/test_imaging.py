@@ -320,6 +320,21 @@ def test_thick_slices_average_over_the_slice():
     assert (column[k_top] - tissue) / (CORTICAL_HU - tissue) == pytest.approx(share_inside, abs=0.11)
 
 
+def test_thick_slices_are_joined_by_a_spline_through_the_voxel_centres():
+    """Ridges round the shaft 6 mm apart along it (0.8 mm high), at 0.7 x 0.7 x 2.0 mm: marching cubes alone
+    joins the slices with straight lines across them; a cubic spline through the voxel centres first ([imaging]
+    slice_spline_degree) follows them (measured RMS 0.270 -> 0.184 mm, max 0.78 -> 0.68 mm)."""
+    capsule = _fine(trimesh.creation.capsule(height=220.0, radius=11.0, count=[48, 48]), 1.5)
+    v = capsule.vertices.copy()
+    ridges = 1.0 + (0.8 / 11.0) * np.sin(2.0 * np.pi * v[:, 2] / 6.0) * (np.abs(v[:, 2]) < 100.0)
+    v[:, :2] *= ridges[:, None]
+    bone = trimesh.Trimesh(v + np.array([42.0, -27.0, 310.0]), capsule.faces)
+    ct = mesh_to_ct(bone.vertices, bone.faces, voxel_mm=(0.7, 0.7, 2.0), seed=3)
+    linear = surface_distance(_segment(ct, replace(SETTINGS.imaging, slice_spline_degree=1)).to_trimesh(), bone)
+    cubic = surface_distance(_segment(ct).to_trimesh(), bone)
+    assert cubic.rms_mm < 0.8 * linear.rms_mm, (cubic, linear)
+
+
 @pytest.fixture(scope="module")
 def tlem2_leg():
     from tests.legs import leg_files_present, load_leg

@@ -150,7 +150,7 @@ def segment_bone(
     field[[0, -1], :, :] = field[:, [0, -1], :] = field[:, :, [0, -1]] = level - 1000.0
     del interior, near, own, other, cut
 
-    mesh = _surface(field, level, sub_offset, volume)
+    mesh = _surface(field, level, sub_offset, volume, settings.slice_spline_degree)
     del field
     mesh = _largest_part(mesh)
     if settings.smoothing_iterations > 0:
@@ -579,13 +579,28 @@ def _part_length(part: np.ndarray, factors: np.ndarray, body: _Body, volume: CTV
     return float(along.max() - along.min())
 
 
-def _surface(field: np.ndarray, level: float, kji_offset: np.ndarray, volume: CTVolume):
-    """Marching cubes of ``field`` at ``level``, vertices mapped to LPS world mm."""
+def _surface(field: np.ndarray, level: float, kji_offset: np.ndarray, volume: CTVolume, spline_degree: int):
+    """Marching cubes of ``field`` at ``level``, vertices mapped to LPS world mm.
+
+    Marching cubes interpolates linearly between voxel centres, which cuts the bone's curvature across thick
+    slices: an axis whose spacing is n >= 2 times the finest (a 2 mm slice beside 0.7 mm pixels: 3) is first
+    interpolated n-fold by a spline of ``spline_degree`` through the voxel centres (1: no interpolation)."""
     import trimesh
+    from scipy.interpolate import make_interp_spline
     from skimage.measure import marching_cubes
 
+    spacing = volume.spacing_mm[::-1]  # (k, j, i)
+    factors = np.ones(3)
+    for axis in range(3):
+        n = int(round(spacing[axis] / spacing.min()))
+        if n < 2 or spline_degree < 2 or field.shape[axis] <= spline_degree:
+            continue
+        centres = np.arange(field.shape[axis], dtype=np.float64)
+        spline = make_interp_spline(centres, field, k=spline_degree, axis=axis)
+        field = spline(np.arange((field.shape[axis] - 1) * n + 1) / n).astype(np.float32)
+        factors[axis] = n
     verts, faces, _, _ = marching_cubes(field, level=level, allow_degenerate=False)
-    ijk = (verts + kji_offset)[:, ::-1]
+    ijk = (verts / factors + kji_offset)[:, ::-1]
     return trimesh.Trimesh(volume.index_to_world(ijk), faces, process=True)
 
 
