@@ -91,6 +91,10 @@ class ImagingSettings:
     smoothing_iterations: int
     slice_spline_degree: int
 
+    def __post_init__(self) -> None:
+        if not 1 <= self.slice_spline_degree <= 5:
+            raise ValueError(f"slice_spline_degree {self.slice_spline_degree} must be 1 (no interpolation) to 5")
+
 
 @dataclass(frozen=True)
 class AnatomySettings:

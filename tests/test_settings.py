@@ -44,6 +44,7 @@ def test_defaults_are_typed_and_complete():
     ("[nurbs]\napex_fill = 'plug'\n", "must be one of"),
     ("[tspline]\ntarget_share_within_mm = [0.99]\n", "must have 2 values"),
     ("[analysis]\nband_width_mm = 0.3\n", "whole number"),
+    ("[imaging]\nslice_spline_degree = 0\n", "must be 1 \\(no interpolation\\) to 5"),
     ("analysis = 3\n", "must be a table"),
     ("[curves\n", "cannot read configuration"),
 ])
