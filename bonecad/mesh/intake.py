@@ -62,8 +62,8 @@ def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"faces are not triangles (shape {faces.shape})", path)
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InputError("faces index vertices that do not exist (truncated file?)", path)
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
+    if not np.isfinite(vertices).all():  # (per row only then: a reduction along rows of 3 is slow)
+        bad = ~np.isfinite(vertices).all(axis=1)
         raise InputError(f"{int(bad.sum())} vertices have NaN or infinite coordinates", path)
     return vertices, faces
 

@@ -26,7 +26,10 @@ def _equal_row_groups(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     groups come in the order of a 64-bit hash of the rows' bits, packed with
     the row index into one word so that a plain sort (no argsort) groups them;
     hash collisions (a few in ten million rows) are found by comparing each
-    row with its neighbour and regrouped exactly.
+    row with its neighbour and only their groups regrouped exactly. The rows
+    are gathered as whole records (``_gathered``) and compared word by word: at
+    11.5 M rows of float32 corners, 0.24 + 0.06 s against 0.62 + 0.18 s as
+    (n, 3) arrays.
     """
     rows = np.ascontiguousarray(rows)
     words = rows.view(np.uint32).reshape(len(rows), -1)
@@ -45,25 +48,36 @@ def _equal_row_groups(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     key &= ~index_mask
     key |= np.arange(len(rows), dtype=np.uint64)
     key.sort()
-    order = (key & index_mask).astype(np.int64)
+    order = (key & index_mask).view(np.int64)
     key >>= bits
     new = np.empty(len(rows), dtype=bool)
     new[0] = True
     np.not_equal(key[1:], key[:-1], out=new[1:])
     del key
-    grouped = np.take(words, order, axis=0)  # (np.take: 4 times faster than words[order] on rows)
-    differs = (grouped[1:] != grouped[:-1]).any(axis=1)
+    grouped = _gathered(words, order)
+    differs = grouped[1:, 0] != grouped[:-1, 0]
+    for j in range(1, grouped.shape[1]):
+        differs |= grouped[1:, j] != grouped[:-1, j]
     collided = np.flatnonzero(differs & ~new[1:]) + 1
+    del differs
     if len(collided):
-        group = np.cumsum(new) - 1
-        bad = np.zeros(int(group[-1]) + 1, dtype=bool)
-        bad[group[collided]] = True
-        pos = np.flatnonzero(bad[group])
-        perm = np.lexsort((order[pos], *grouped[pos].T[::-1], group[pos]))
+        starts = np.flatnonzero(new)
+        group = np.unique(np.searchsorted(starts, collided, side="right") - 1)
+        begin, end = starts[group], np.r_[starts, len(rows)][group + 1]
+        size = end - begin
+        pos = np.repeat(begin - np.cumsum(size) + size, size) + np.arange(size.sum())  # the groups' positions
+        perm = np.lexsort((order[pos], *grouped[pos].T[::-1], np.repeat(group, size)))
         order[pos] = order[pos][perm]
         sub = grouped[pos][perm]
         new[pos[1:][(sub[1:] != sub[:-1]).any(axis=1)]] = True
     return order, np.flatnonzero(new)
+
+
+def _gathered(words: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """``words[order]`` for an (n, k) uint32 array, each row taken as one k-word record (2.5 times faster
+    than taking rows of k words)."""
+    records = words.view(np.dtype((np.void, 4 * words.shape[1]))).ravel()
+    return np.take(records, order).view(np.uint32).reshape(len(order), words.shape[1])
 
 
 #: rows above which ``first_of_equal_rows`` splits its work when it may (fewer: a fork costs more than it saves)
@@ -184,6 +198,10 @@ class EdgeCounts:
         return self.keys // self.vertex_count
 
 
+#: faces per block of ``edge_counts``' keys (TLEM2's 7.7 M triangles split 64-fold: 2.9-4.2 s in one go)
+EDGE_BLOCK = 32768
+
+
 def edge_counts(faces: np.ndarray, vertex_count: int) -> EdgeCounts:
     """The undirected edges of ``faces`` (indices below ``vertex_count``), counted (``EdgeCounts``).
 
@@ -192,15 +210,22 @@ def edge_counts(faces: np.ndarray, vertex_count: int) -> EdgeCounts:
     against 0.80 s CPU for TLEM2's 5.7 M half-edges split 16-fold) groups
     them, when both fit in 63 bits (up to about 4 M triangles).
     """
-    start = faces.ravel()
-    end = faces[:, [1, 2, 0]].ravel()
-    forward = start < end
-    keys = np.minimum(start, end).astype(np.int64) * vertex_count
-    keys += np.maximum(start, end)
-    index_bits = max(1, (len(keys) - 1).bit_length())
-    if (max(1, vertex_count) ** 2).bit_length() + index_bits <= 63:
-        keys <<= index_bits
-        keys |= np.arange(len(keys))
+    half_edges = 3 * len(faces)
+    index_bits = max(1, (half_edges - 1).bit_length())
+    packed = (max(1, vertex_count) ** 2).bit_length() + index_bits <= 63
+    keys, forward = np.empty(half_edges, dtype=np.int64), np.empty(half_edges, dtype=bool)
+    for first in range(0, len(faces), EDGE_BLOCK):  # (in blocks: the temporaries stay in the cache)
+        block = faces[first : first + EDGE_BLOCK]
+        start, end = block.ravel(), block[:, [1, 2, 0]].ravel()
+        at = slice(3 * first, 3 * first + len(start))
+        forward[at] = start < end
+        key = np.minimum(start, end).astype(np.int64) * vertex_count
+        key += np.maximum(start, end)
+        if packed:
+            key <<= index_bits
+            key |= np.arange(at.start, at.stop)
+        keys[at] = key
+    if packed:
         keys.sort()
         order = keys & ((1 << index_bits) - 1)
         keys >>= index_bits
