@@ -174,6 +174,12 @@ def common_figures(out: Path, tibia) -> dict[str, tuple[float, ...]]:
     return figures
 
 
+def figure_cells(figures: dict[str, tuple[float, ...]], models: list[str]) -> list[str]:
+    """One table cell per model: its shares (%) within 0.1 / 0.2 / 0.25 / 0.3 mm and its RMS (mm), or "-"."""
+    return [" / ".join(f"{100 * share:.2f}" for share in figures[m][:-1]) + f", {figures[m][-1]:.4f}"
+            if m in figures else "-" for m in models]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--levels", default="0,1,2", help="subdivision levels (0-3), comma-separated")
@@ -207,16 +213,13 @@ def main() -> None:
     print("|" + "---|" * (5 + len(groups) + len(models)))
     for read, triangles, wall, cpu, peak, stages, figures in rows:
         cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f}", f"{cpu:.1f}", f"{peak:.2f}",
-                 *(f"{stages[g]:.1f}" for g in groups),
-                 *(" / ".join(f"{100 * share:.2f}" for share in figures[m][:-1]) + f", {figures[m][-1]:.4f}"
-                   if m in figures else "-" for m in models)]
+                 *(f"{stages[g]:.1f}" for g in groups), *figure_cells(figures, models)]
         print("| " + " | ".join(cells) + " |")
     print(f"\nThe same models at the same {COMMON_SAMPLES:,} samples of the level-0 tibia:\n")
     print("| triangles | " + " | ".join(f"{m} % within 0.1 / 0.2 / 0.25 / 0.3 mm, RMS mm" for m in models) + " |")
     print("|" + "---|" * (1 + len(models)))
     for read, figures in common:
-        print(f"| {read:,} | " + " | ".join(" / ".join(f"{100 * share:.2f}" for share in figures[m][:-1])
-                                         + f", {figures[m][-1]:.4f}" if m in figures else "-" for m in models) + " |")
+        print(f"| {read:,} | " + " | ".join(figure_cells(figures, models)) + " |")
 
 
 if __name__ == "__main__":
