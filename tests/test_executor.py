@@ -7,13 +7,14 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import numpy as np
 import pytest
 
 from bonecad.errors import InputError
-from bonecad.run.executor import Fork, InProcess, executor_for, release_free_heap
+from bonecad.run.executor import Fork, InProcess, executor_for, helper_thread, release_free_heap
 
 needs_fork = pytest.mark.skipif(not Fork.available(), reason="fork is not available on this platform")
 
@@ -129,6 +130,25 @@ def test_children_die_with_a_killed_parent(tmp_path):
                 os.kill(p, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_helper_thread_runs_jobs_in_turn_and_an_error_drops_the_ones_not_started():
+    """``helper_thread``: a job's result as the function's, in this process; leaving the block on an error
+    waits for the running job and cancels the queued one; no thread is left; none when not wanted."""
+    with helper_thread(False) as submit:
+        assert submit is None
+    ran = []
+    with pytest.raises(KeyboardInterrupt):
+        with helper_thread(True) as submit:
+            assert submit(_stats, np.arange(4.0), 2.0).result() == {"sum": 12.0, "pid": os.getpid()}
+            started = threading.Event()
+            running = submit(lambda: started.set() or _sleeps(0.3))
+            queued = submit(ran.append, 1)
+            started.wait(10.0)
+            raise KeyboardInterrupt
+    assert running.done() and running.result() == os.getpid()
+    assert queued.cancelled() and not ran
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("bonecad-helper")]
 
 
 def test_in_process_when_fork_is_not_wanted():

@@ -134,7 +134,8 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, beside: Callable[..., Any] |
     removed (in MeshLab's order). A result that is not ``manifold()`` (border or non-manifold edges or
     vertices) is not used: ``_repaired`` cleans the input with MeshLab instead.
 
-    beside : runs part of the work elsewhere (an executor's ``submit``) while this process does the rest:
+    beside : runs part of the work elsewhere (an executor's ``submit``, or the runner's helper thread's,
+        ``run.executor.helper_thread``) while this process does the rest:
         half the vertex merging, then the face checks while this process counts the edges of the faces as
         merged (used when the checks drop no face, the common case), then, on a dense mesh, the count of
         non-manifold vertices, so that the caller reads the bodies meanwhile (``_manifold``).
@@ -329,7 +330,7 @@ def load_bone(
 
     working_copy : ``with_working_copy`` or a function of the same arguments and result (the runner's, which
         builds the mesh's closest-point tree meanwhile).
-    beside : runs part of the cleanup elsewhere (an executor's ``submit``, ``_clean``); None: all here.
+    beside : runs part of the cleanup elsewhere (a ``submit``, ``_clean``); None: all here.
 
     Raises InputError (naming the file) for unreadable files, wrong units, a
     tibia broken into pieces, or a bone fused to a neighbouring bone.

@@ -44,7 +44,8 @@ from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import Units, load_bone
 from bonecad.mesh.working import first_pass_target, halves_simplified, with_working_copy
 from bonecad.run.bones import bone_frame, bone_settings, kept_body, named_bone
-from bonecad.run.executor import Executor, InProcess, executor_for, freed_memory_reused, huge_pages
+from bonecad.run.executor import (Executor, InProcess, executor_for, freed_memory_reused, helper_thread,
+                                   huge_pages)
 from bonecad.settings import MeshSettings, Settings, load_profile
 from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
@@ -470,10 +471,13 @@ def reconstruct(
     with huge_pages(settings.pipeline.huge_pages):
         with timings.stage("input"):
             if until == "models" and executor is None:  # the analysis needs the full mesh's tree
-                # (huge pages for the intake's large arrays, which reuse their memory rather than fork)
-                with huge_pages(True), freed_memory_reused(), executor_for(settings.pipeline.background_jobs) as ex:
+                # (huge pages for the intake's large arrays, which reuse their memory; the cleanup's jobs in a thread,
+                # which shares it, the working copy's forked: its simplifier keeps global state)
+                jobs = settings.pipeline.background_jobs
+                with (huge_pages(True), freed_memory_reused(), executor_for(jobs) as ex,
+                      helper_thread(jobs) as beside):
                     bone = load_input(source, settings, units=units, working_copy=copy_beside_tree(ex),
-                                      beside=ex.submit)
+                                      beside=beside)
             else:
                 bone = load_input(source, settings, units=units)
         return reconstruct_bone(bone, out_dir, settings, until=until, timings=timings, executor=executor,
