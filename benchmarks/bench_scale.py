@@ -7,8 +7,11 @@ against the full mesh within 0.2 percentage points of the 100 k case's.
 The inputs are one real tibia (TLEM2 by default, ~120 k triangles) split at its
 edge midpoints 1, 2 and 3 times (x4 triangles each: the same surface, shorter
 edges), written as binary STL into a temporary folder (never the repository).
-Each size runs ``bonecad reconstruct MESH --out DIR -q`` twice, each in a new
-process: once timed (wall and CPU), once watched for memory, the peak of the
+Each size runs ``bonecad reconstruct MESH --out DIR -q`` in new processes:
+``--runs`` times timed (wall and CPU: their medians, and every run's wall time,
+as a dense mesh's first touch of fresh memory costs a hypervisor fault whose
+price drifts with the host: TLEM2 split 16-fold took 17.2-21.3 s in one
+afternoon), then once watched for memory, the peak of the
 whole process tree's proportional set size (PSS: forked children share their
 parent's pages and count them once), polled every 0.1 s (the poll costs CPU
 on the same cores: see ``reconstruct``). Per stage: the stage times of report.json (a background job's own time:
@@ -24,10 +27,11 @@ surface for every size (drawn on the level-0 tibia, which the subdivided meshes
 follow exactly): those figures differ between sizes by the models alone (0.03
 points of sampling error at 90 %).
 
-Run: python benchmarks/bench_scale.py [--levels 0,1,2] [--mesh PATH] [--keep DIR]
+Run: python benchmarks/bench_scale.py [--levels 0,1,2] [--mesh PATH] [--keep DIR] [--runs 3]
   --levels : subdivision levels to run (0: the mesh as read; 3: ~8 M triangles:
              run it alone on the machine, it needs several GB)
   --keep   : write (or reuse) the subdivided meshes in DIR instead of a temporary folder
+  --runs   : timed runs per size (3)
 """
 from __future__ import annotations
 
@@ -185,6 +189,7 @@ def main() -> None:
     parser.add_argument("--levels", default="0,1,2", help="subdivision levels (0-3), comma-separated")
     parser.add_argument("--mesh", type=Path, default=DATA / "TLEM2_CT_tibia_r.stl")
     parser.add_argument("--keep", type=Path, help="folder for the subdivided meshes (default: temporary)")
+    parser.add_argument("--runs", type=int, default=3, help="timed runs per size (their median is printed)")
     args = parser.parse_args()
     if not args.mesh.exists():
         sys.exit(f"benchmark needs {args.mesh}")
@@ -197,22 +202,26 @@ def main() -> None:
         for level in levels:
             mesh = subdivided_mesh(args.mesh, level, folder)
             out = Path(tmp) / f"out{level}"
-            wall, cpu, _ = reconstruct(mesh, out)
+            timed = [reconstruct(mesh, out) for _ in range(max(1, args.runs))]
+            wall, cpu = (float(np.median([run[k] for run in timed])) for k in (0, 1))
+            walls = sorted(run[0] for run in timed)
             peak_gb = reconstruct(mesh, Path(tmp) / f"watched{level}", watch_memory=True)[2]
             report = json.loads((out / "report.json").read_text())
             read = sum(body["triangles"] for body in report["input"]["bodies"])
-            rows.append((read, report["input"]["triangles"], wall, cpu, peak_gb, stage_seconds(report),
+            rows.append((read, report["input"]["triangles"], wall, walls, cpu, peak_gb, stage_seconds(report),
                          deviation_figures(report)))
             common.append((read, common_figures(out, tibia)))
-            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall:.1f} s wall, {cpu:.1f} s CPU, "
-                  f"{peak_gb:.2f} GB", file=sys.stderr, flush=True)
+            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall:.1f} s wall "
+                  f"({' / '.join(f'{w:.1f}' for w in walls)}), {cpu:.1f} s CPU, {peak_gb:.2f} GB", file=sys.stderr,
+                  flush=True)
     groups = list(STAGE_GROUPS)
     models = sorted({m for row in rows for m in row[-1]})
-    print("| triangles (file, cleaned) | tibia | wall s | CPU s | peak GB | " + " | ".join(groups) + " | "
+    print("| triangles (file, cleaned) | tibia | wall s (runs) | CPU s | peak GB | " + " | ".join(groups) + " | "
           + " | ".join(f"{m} % within 0.1 / 0.2 / 0.25 / 0.3 mm, RMS mm" for m in models) + " |")
     print("|" + "---|" * (5 + len(groups) + len(models)))
-    for read, triangles, wall, cpu, peak, stages, figures in rows:
-        cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f}", f"{cpu:.1f}", f"{peak:.2f}",
+    for read, triangles, wall, walls, cpu, peak, stages, figures in rows:
+        cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f} ({' / '.join(f'{w:.1f}' for w in walls)})", f"{cpu:.1f}",
+                 f"{peak:.2f}",
                  *(f"{stages[g]:.1f}" for g in groups), *figure_cells(figures, models)]
         print("| " + " | ".join(cells) + " |")
     print(f"\nThe same models at the same {COMMON_SAMPLES:,} samples of the level-0 tibia:\n")
