@@ -184,6 +184,11 @@ def figure_cells(figures: dict[str, tuple[float, ...]], models: list[str]) -> li
             if m in figures else "-" for m in models]
 
 
+def wall_cell(walls: list[float]) -> str:
+    """The median of the runs' wall times (s), then every run's in brackets."""
+    return f"{np.median(walls):.1f} ({' / '.join(f'{w:.1f}' for w in walls)})"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--levels", default="0,1,2", help="subdivision levels (0-3), comma-separated")
@@ -203,25 +208,23 @@ def main() -> None:
             mesh = subdivided_mesh(args.mesh, level, folder)
             out = Path(tmp) / f"out{level}"
             timed = [reconstruct(mesh, out) for _ in range(max(1, args.runs))]
-            wall, cpu = (float(np.median([run[k] for run in timed])) for k in (0, 1))
             walls = sorted(run[0] for run in timed)
+            cpu = float(np.median([run[1] for run in timed]))
             peak_gb = reconstruct(mesh, Path(tmp) / f"watched{level}", watch_memory=True)[2]
             report = json.loads((out / "report.json").read_text())
             read = sum(body["triangles"] for body in report["input"]["bodies"])
-            rows.append((read, report["input"]["triangles"], wall, walls, cpu, peak_gb, stage_seconds(report),
+            rows.append((read, report["input"]["triangles"], walls, cpu, peak_gb, stage_seconds(report),
                          deviation_figures(report)))
             common.append((read, common_figures(out, tibia)))
-            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall:.1f} s wall "
-                  f"({' / '.join(f'{w:.1f}' for w in walls)}), {cpu:.1f} s CPU, {peak_gb:.2f} GB", file=sys.stderr,
-                  flush=True)
+            print(f"{mesh.name}: {read} triangles ({rows[-1][1]} the tibia's), {wall_cell(walls)} s wall, "
+                  f"{cpu:.1f} s CPU, {peak_gb:.2f} GB", file=sys.stderr, flush=True)
     groups = list(STAGE_GROUPS)
     models = sorted({m for row in rows for m in row[-1]})
     print("| triangles (file, cleaned) | tibia | wall s (runs) | CPU s | peak GB | " + " | ".join(groups) + " | "
           + " | ".join(f"{m} % within 0.1 / 0.2 / 0.25 / 0.3 mm, RMS mm" for m in models) + " |")
     print("|" + "---|" * (5 + len(groups) + len(models)))
-    for read, triangles, wall, walls, cpu, peak, stages, figures in rows:
-        cells = [f"{read:,}", f"{triangles:,}", f"{wall:.1f} ({' / '.join(f'{w:.1f}' for w in walls)})", f"{cpu:.1f}",
-                 f"{peak:.2f}",
+    for read, triangles, walls, cpu, peak, stages, figures in rows:
+        cells = [f"{read:,}", f"{triangles:,}", wall_cell(walls), f"{cpu:.1f}", f"{peak:.2f}",
                  *(f"{stages[g]:.1f}" for g in groups), *figure_cells(figures, models)]
         print("| " + " | ".join(cells) + " |")
     print(f"\nThe same models at the same {COMMON_SAMPLES:,} samples of the level-0 tibia:\n")

@@ -473,9 +473,9 @@ def reconstruct(
             if until == "models" and executor is None:  # the analysis needs the full mesh's tree
                 # (huge pages for the intake's large arrays, which reuse their memory; the cleanup's jobs in a thread,
                 # which shares it, the working copy's forked: its simplifier keeps global state)
-                jobs = settings.pipeline.background_jobs
-                with (huge_pages(True), freed_memory_reused(), executor_for(jobs) as ex,
-                      helper_thread(jobs) as beside):
+                background = settings.pipeline.background_jobs
+                with (huge_pages(True), freed_memory_reused(), executor_for(background) as ex,
+                      helper_thread(background) as beside):
                     bone = load_input(source, settings, units=units, working_copy=copy_beside_tree(ex),
                                       beside=beside)
             else:
