@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from bonecad.analysis.deviation import DeviationResult, shape_deviation
+from bonecad.analysis.folds import FoldCheck, shape_folds
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.mesh.bone_mesh import BoneMesh
@@ -29,6 +30,7 @@ class ModelReport:
     """Everything the report says about one CAD model.
 
     figures : name -> PNG path (copied by name into the report folder's references)
+    folds : the elements of its faces whose normal reverses (``analysis.folds``), or None (not checked)
     """
 
     name: str
@@ -37,6 +39,7 @@ class ModelReport:
     continuity: SeamContinuity | None = None
     knots: list[KnotContinuity] | None = None
     figures: dict[str, Path] = field(default_factory=dict)
+    folds: FoldCheck | None = None
 
 
 def region_labels(frame: AnatomicalFrame):
@@ -95,8 +98,9 @@ def model_deviation(tess: Tessellation, bone: BoneMesh, frame: AnatomicalFrame,
 
 
 def model_continuity(shape, tess: Tessellation, face_names, settings: AnalysisSettings
-                     ) -> tuple[SeamContinuity, list[KnotContinuity]]:
-    """Seam classes of every shared edge (counted per pair of face names) and the knot continuity."""
+                     ) -> tuple[SeamContinuity, list[KnotContinuity], FoldCheck]:
+    """Seam classes of every shared edge (counted per pair of face names), the knot continuity and the
+    elements whose normal reverses (``analysis.folds``)."""
     seams = seam_continuity(shape, tessellation=tess, face_names=face_names,
                             tolerances=continuity_tolerances(settings))
-    return seams, knot_continuity(shape)
+    return seams, knot_continuity(shape), shape_folds(shape, face_names)

@@ -31,7 +31,9 @@ report.json schema (``"schema": "bonecad.report/1"``)::
                          "reason", "checks": [{"check", "measured", "target", "met"}],
                          "faces", "control_points", "within_mm": {"0.1": share, ...},
                          "max_mm": {"mesh_to_cad", "cad_to_mesh"}, "rms_mm": {...},
-                         "seam_classes": {"gap", "C0", "G1", "G2"}, "files_bytes": {file name: bytes}}},
+                         "seam_classes": {"gap", "C0", "G1", "G2"},
+                         "folds": {"elements", "reversed_elements", "where": [{"face", "centre_mm",
+                                   "largest_turn_deg"}]} or null, "files_bytes": {file name: bytes}}},
       "contours": [{"region", "curves", "control_points_per_curve", "tolerance_mm",
                     "worst_max_deviation_mm", "mean_rms_deviation_mm", "within_tolerance", "repairs"}] or null,
       "morphometry": {parameter: value (mm, degrees; `bonecad measure`'s PARAMETERS)} or null
@@ -169,30 +171,38 @@ MET, NOT_MET, AT_NOISE, NOT_MEASURED = "met", "not met", "stopped at the data's 
 
 
 def verdict(model: ModelReport, tolerances: Tolerances) -> dict[str, Any]:
-    """The model against the tolerances, measured by the analysis (mesh -> CAD deviation).
+    """The model against the tolerances, measured by the analysis in both directions: the mesh near the
+    model (mesh -> CAD) and the model near the mesh (CAD -> mesh, where a fold shows), and no element whose
+    normal reverses (``analysis.folds``).
 
-    "met" when every check holds; otherwise "stopped at the data's noise" when the
-    model's fit stopped there (its ``fit_stopped`` says so, and is the reason), else "not met"."""
+    "met" when every check holds; otherwise "stopped at the data's noise" when the model's fit stopped
+    there (its ``fit_stopped`` says so, and is the reason) and the model does not fold, else "not met"."""
     if model.deviation is None:
         return {"verdict": NOT_MEASURED, "reason": "no deviation was measured", "checks": []}
-    d = model.deviation.mesh_to_cad
     t = tolerances
-    worst = max(d.stats.max_outside_mm, d.stats.max_inside_mm)
-    share = d.share_within(t.within_mm)
-    checks = [
-        {"check": f"share of the surface within {t.within_mm:g} mm", "measured": share,
-         "target": f">= {t.share:g}", "met": share >= t.share},
-        {"check": "largest deviation, mm", "measured": worst, "target": f"<= {t.max_deviation_mm:g}",
-         "met": worst <= t.max_deviation_mm},
-        {"check": "RMS deviation, mm", "measured": d.stats.rms_mm, "target": f"<= {t.rms_mm:g}",
-         "met": d.stats.rms_mm <= t.rms_mm},
-    ]
+    checks = []
+    for label, d in (("mesh to CAD", model.deviation.mesh_to_cad), ("CAD to mesh", model.deviation.cad_to_mesh)):
+        worst = max(d.stats.max_outside_mm, d.stats.max_inside_mm)
+        share = d.share_within(t.within_mm)
+        checks += [
+            {"check": f"{label}: share of the surface within {t.within_mm:g} mm", "measured": share,
+             "target": f">= {t.share:g}", "met": share >= t.share},
+            {"check": f"{label}: largest deviation, mm", "measured": worst, "target": f"<= {t.max_deviation_mm:g}",
+             "met": worst <= t.max_deviation_mm},
+            {"check": f"{label}: RMS deviation, mm", "measured": d.stats.rms_mm, "target": f"<= {t.rms_mm:g}",
+             "met": d.stats.rms_mm <= t.rms_mm},
+        ]
+    if model.folds is not None:
+        checks.append({"check": "elements whose normal reverses (folds)", "measured": model.folds.reversed_elements,
+                       "target": "= 0", "met": model.folds.reversed_elements == 0})
     missed = [c for c in checks if not c["met"]]
     if not missed:
-        return {"verdict": MET, "reason": "every tolerance holds on the measured deviation", "checks": checks}
+        return {"verdict": MET, "reason": "every tolerance holds on the measured deviation, both ways, and the "
+                "model does not fold", "checks": checks}
     stopped = str(model.info.get("fit_stopped") or "")
     misses = "; ".join(f"{c['check']} {c['measured']:.4g} (target {c['target']})" for c in missed)
-    if "noise" in stopped:
+    folded = model.folds is not None and model.folds.reversed_elements > 0
+    if "noise" in stopped and not folded:
         return {"verdict": AT_NOISE, "reason": f"{misses}; the fit stopped: {stopped}", "checks": checks}
     return {"verdict": NOT_MET, "reason": misses + (f"; the fit stopped: {stopped}" if stopped else ""),
             "checks": checks}
@@ -211,6 +221,7 @@ def model_summary(model: ModelReport, tolerances: Tolerances | None, out_dir: Pa
     card["max_mm"] = {k: max(v.stats.max_outside_mm, v.stats.max_inside_mm) for k, v in directions.items()}
     card["rms_mm"] = {k: v.stats.rms_mm for k, v in directions.items()}
     card["seam_classes"] = model.continuity.summary()["class_counts"] if model.continuity else {}
+    card["folds"] = model.folds.to_dict() if model.folds else None
     files = sorted(out_dir.glob(f"{model.name}.*")) if out_dir is not None else []
     card["files_bytes"] = {p.name: p.stat().st_size for p in files if p.is_file()}
     return card

@@ -413,7 +413,7 @@ def prepare_bone(
             "bonecad does not guess how to join them: segment the bone as one body",
             path,
         )
-    check_not_fused(work.vertices, work.faces, settings, length_range, path)
+    check_not_fused(work.vertices, work.faces, settings, path)
     dropped = infos[1:]
     if dropped:
         repairs.append("dropped " + ", ".join(

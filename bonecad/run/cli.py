@@ -241,8 +241,8 @@ def _print_inspect(summary: dict) -> None:
     semi_axes = summary['plateau_semi_axes_mm']
     print(f"{'condyles' if femur else 'plateau':<11} ellipse semi-axes {semi_axes[0]} x {semi_axes[1]} mm")
     print("bodies")
-    for b in summary["bodies"]:
-        kept = "kept" if b["role"] == "tibia" else "dropped"
+    for i, b in enumerate(summary["bodies"]):
+        kept = "kept" if i == 0 else "dropped"  # the intake lists the kept body first
         print(f"  {b['role']:<12} {b['triangles']:>8} triangles  {b['volume_mm3'] / 1000:>8.1f} cm3  "
               f"{b['length_mm']:>6.1f} mm long  ({kept})")
     print("repairs" if summary["repairs"] else "repairs     none")

@@ -149,8 +149,7 @@ def segment_ct(path: str | Path, settings: Settings, *,
     bone = working_copy(segmented, settings.mesh)
     for repair in bone.repairs:
         log.info("%s", repair)
-    lo, hi = settings.units.tibia_length_mm
-    check_not_fused(bone.work.vertices, bone.work.faces, settings.mesh, (float(lo), float(hi)), Path(path))
+    check_not_fused(bone.work.vertices, bone.work.faces, settings.mesh, Path(path))
     return bone
 
 
@@ -435,15 +434,15 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
                            deviation.vertex_deviation_mm, view_frame,
                            title=f"{name}: deviation of the mesh from the CAD model, mm",
                            height_px=settings.analysis.figure_height_px, pixels=pixels)
-    zebra, (continuity, knots) = side.result()
+    zebra, (continuity, knots, folds) = side.result()
     figures = {"deviation": colour_map.result(), "zebra": zebra}
     report = ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots,
-                         figures=figures)
+                         folds=folds, figures=figures)
     return report, view.result()
 
 
 def zebra_and_continuity(name: str, model, tess, out_dir: Path, view_frame: np.ndarray, settings: Settings):
-    """The zebra figure, and the seam and knot continuity, of a tessellated model."""
+    """The zebra figure, and the seam and knot continuity and the folds, of a tessellated model."""
     from bonecad.render.figures import zebra_png
 
     zebra = zebra_png(out_dir / f"{name}_zebra.png", tess, view_frame, title=f"{name}: zebra (reflection lines)",

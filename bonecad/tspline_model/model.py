@@ -108,6 +108,7 @@ class TSplineModel(ShapePickling):
             "fit": self.fit.stats.to_dict(),
             "fit_converged": self.fit.converged,
             "fit_stopped": self.fit.stopped,
+            "fit_folded_elements": self.fit.folded_elements,
             "staircase_voxel_mm": self.staircase_voxel_mm,
             "noise_level_mm": self.noise_level_mm,
             "fit_history": [h.to_dict() for h in self.fit.history],
@@ -283,6 +284,9 @@ def build_tspline_model(
         staircase = f"; the mesh is a {voxel:.2f} mm voxel staircase" if voxel else ""
         log.warning("T-spline fit stopped before the tolerances held: %s (%s)%s", fit.stopped, fit.stats.to_dict(),
                     staircase)
+    if fit.folded_elements:
+        log.warning("the T-spline folds in %d Bezier elements (a sheet turned back on itself: the model does "
+                    "not meet its tolerances)", fit.folded_elements)
 
     tp_fit = None
     if st.compare_tensor_product:

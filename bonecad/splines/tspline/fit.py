@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from bonecad.splines.tspline import BezierExtraction, KnotSegment, TSpline, insert_segments, refine_elements
 from bonecad.splines.basis import bernstein3
+from bonecad.splines.folds import FOLD_SAMPLES, FOLD_TURN_DEG, element_grid, largest_turn_deg
 from bonecad.splines.lsq import normal_equations, solve_spd
 
 log = logging.getLogger(__name__)
@@ -122,6 +123,8 @@ class FitResult:
 
     s, t : (n,) parameters of the points on the final surface; distance_mm : (n,).
     converged : the tolerances hold; stopped : why refinement stopped.
+    folded_elements : Bezier elements of the surface whose normal reverses inside them (0 for a fit
+        without folds).
     """
 
     tspline: TSpline
@@ -132,6 +135,7 @@ class FitResult:
     history: list[FitStats] = field(default_factory=list)
     converged: bool = False
     stopped: str = ""
+    folded_elements: int = 0
 
 
 # ------------------------------------------------------------------ projection
@@ -380,6 +384,22 @@ def solve_control_points(
     return ts.with_control_points(cp)
 
 
+# ------------------------------------------------------------------- folds
+def element_turns_deg(ts: TSpline, samples: int = FOLD_SAMPLES) -> np.ndarray:
+    """(n_e,) degrees: per Bezier element, the largest turn of the normal between neighbouring samples of
+    its ``samples`` x ``samples`` grid (``splines.folds``: above ``FOLD_TURN_DEG`` the element folds)."""
+    ext = ts.extraction
+    gs = element_grid(ext.s_bounds[:, 0], ext.s_bounds[:, 1], samples)
+    gt = element_grid(ext.t_bounds[:, 0], ext.t_bounds[:, 1], samples)
+    n_e = ext.n_elements
+    ss = np.broadcast_to(gs[:, :, None], (n_e, samples, samples))
+    tt = np.broadcast_to(gt[:, None, :], (n_e, samples, samples))
+    s, t = _wrap_clamp(ts, ss.ravel(), tt.ravel())
+    sample = ts.evaluate(s, t, order=1)
+    shape = (n_e, samples, samples, 3)
+    return largest_turn_deg(sample.du.reshape(shape), sample.dv.reshape(shape))
+
+
 # ------------------------------------------------------------------- statistics
 def fit_stats(ts: TSpline, distance: np.ndarray, weights: np.ndarray, within_mm: float) -> FitStats:
     w = weights / weights.sum()
@@ -625,7 +645,7 @@ def fit_adaptive(
         if progress is not None:
             progress(round_, stats)
         if stats.meets(tol):
-            return FitResult(ts, s, t, dist, stats, history, True, "tolerances met")
+            return FitResult(ts, s, t, dist, stats, history, True, "tolerances met", _folds(ts))
         if noise_level > 0 and stats.share_within >= tol.share_within[0] and stats.rms_mm <= min(tol.rms_mm,
                                                                                                    noise_level):
             beyond = int(np.sum(dist > tol.max_deviation_mm))
@@ -663,4 +683,9 @@ def fit_adaptive(
             stopped = f"control-point budget ({tol.max_control_points}) reached: the next round needs {new.n_control}"
             break
         ts = new
-    return FitResult(ts, s, t, dist, stats, history, False, stopped)
+    return FitResult(ts, s, t, dist, stats, history, False, stopped, _folds(ts))
+
+
+def _folds(ts: TSpline) -> int:
+    """The number of Bezier elements of the final surface that fold (``element_turns_deg``)."""
+    return int(np.sum(element_turns_deg(ts) > FOLD_TURN_DEG))
