@@ -186,8 +186,8 @@ def errors_markdown() -> str:
               f"| {cli.EXIT_OK} | success: every file written |",
               f"| {cli.EXIT_BAD_INPUT} | bad input (`InputError` and its subclasses): one line `bonecad: error: FILE: "
               "problem` on stderr, no output written |",
-              f"| {cli.EXIT_INTERNAL} | an internal failure (any other error): one line `bonecad: internal error: ...`; "
-              "`--verbose` adds the traceback |",
+              f"| {cli.EXIT_INTERNAL} | an internal failure (any other error): one line `bonecad: internal error: "
+              "...`; `--verbose` adds the traceback |",
               "| 130 | interrupted by Ctrl-C (SIGINT): children stopped, nothing written |",
               "| 143 | stopped by SIGTERM: the same |", ""]
     return "\n".join(lines)
@@ -243,9 +243,12 @@ def api_markdown() -> str:
               "      show_root_heading: false", "      members: false", ""]
     import bonecad.tspline as ts
 
-    lines += [f"::: bonecad.splines.tspline.{n}" if not inspect.ismodule(getattr(ts, n))
-              else f"::: bonecad.splines.tspline.{n}\n    options:\n      members: false"
-              for n in ts.__all__]
+    for n in ts.__all__:  # each where it is defined
+        obj = getattr(ts, n)
+        if inspect.ismodule(obj):
+            lines += [f"::: {obj.__name__}", "    options:", "      members: false", ""]
+        else:
+            lines += [f"::: {obj.__module__}.{obj.__qualname__}", ""]
     lines += ["", "## The stages", ""]
     for entry in bonecad.STAGES:
         lines += [f"::: {entry.replace(':', '.')}", ""]
@@ -260,7 +263,8 @@ def parameters_markdown() -> str:
     return "\n".join(["| parameter | unit | definition |", "|---|---|---|", *rows, ""])
 
 
-GENERATORS = {"api": api_markdown, "parameters": parameters_markdown, "cli": cli_markdown, "settings": settings_markdown, "errors": errors_markdown,
+GENERATORS = {"api": api_markdown, "parameters": parameters_markdown, "cli": cli_markdown,
+              "settings": settings_markdown, "errors": errors_markdown,
               "exporters": exporters_markdown, "report-schema": report_schema_markdown}
 
 

@@ -87,9 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action=_Version, nargs=0, help="print versions (bonecad, OCP, build123d)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("inspect", help="summarise a bone mesh: units, bodies, the bone kept (tibia or femur), side, repairs",
-                       description="Read and clean a mesh; print its units, bodies (volume, length), which body "
-                       "is the tibia (or the femur), the side (left/right, from the anatomy), watertightness and repairs.",
+    p = sub.add_parser("inspect", help="summarise a bone mesh: units, bodies, the bone kept (tibia or femur), side, "
+                       "repairs", description="Read and clean a mesh; print its units, bodies (volume, length), which "
+                       "body is the tibia (or the femur), the side (left/right, from the anatomy), watertightness and "
+                       "repairs.",
                        epilog="example: bonecad inspect tibia.stl --json")
     p.add_argument("mesh", type=Path, help="STL, OBJ, PLY or OFF file")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
