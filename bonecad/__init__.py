@@ -1,7 +1,7 @@
 """bonecad: CT scans and meshes of long bones to native CAD models.
 
 The Python API mirrors the pipeline, one function per stage; settings default
-to the shipped ones (``Settings.load()``, from ``data/defaults.toml``)::
+to the shipped ones (``Settings.load()``, from ``data/defaults.toml``):
 
     bone = bonecad.load_bone("tibia.stl")          # BoneMesh (mm)
     frame = bonecad.anatomical_frame(bone)         # AnatomicalFrame

@@ -94,16 +94,23 @@ DEFAULTS = ROOT / "bonecad" / "data" / "defaults.toml"
 
 def settings_entries(path: Path = DEFAULTS) -> list[tuple[str, str, str, str]]:
     """(section, key, value as written, the comment above it) for every setting of a TOML file with
-    comments; a key right after another, with no comment of its own, shares the one above both."""
+    comments; a key right after another, with no comment of its own, shares the one above both (and
+    says so rather than repeating it)."""
     entries: list[tuple[str, str, str, str]] = []
     section, comment, last = "", [], ""
+    after_block = False
     lines = path.read_text().splitlines()
     i = 0
     while i < len(lines):
         line = lines[i].strip()
         i += 1
         if line.startswith("#"):
-            comment.append(line.lstrip("#").strip())
+            text = line[1:]
+            # an indented comment line (a table or list in the file) keeps its own line, and so does the
+            # line after such a block
+            indented = text.startswith("   ")
+            comment.append(("<br>" if comment and (indented or after_block) else "") + text.strip())
+            after_block = indented
         elif line.startswith("["):
             section, comment, last = line.strip("[]").strip(), [], ""
         elif "=" in line and section:
@@ -111,9 +118,9 @@ def settings_entries(path: Path = DEFAULTS) -> list[tuple[str, str, str, str]]:
             while value.count("[") > value.count("]") or value.count("{") > value.count("}"):
                 value += " " + lines[i].split("#")[0].strip()  # a value written over several lines
                 i += 1
-            text = " ".join(comment) or last
+            text = " ".join(comment) or (f"(with `{last}`, above)" if last else "")
             entries.append((section, key, value, text))
-            comment, last = [], text
+            comment, last, after_block = [], (key if comment else last), False
         elif not line:
             last = ""
     return entries

@@ -278,3 +278,15 @@ def test_pages_load_in_chromium_without_console_messages(site, page):
     run = chromium("--dump-dom", html.as_uri())
     assert not console_messages(run.stderr), console_messages(run.stderr)[:5]
     assert "<article" in run.stdout and "bonecad" in run.stdout
+
+
+def test_the_published_ranges_the_measurements_are_tested_against_are_in_the_docs():
+    """tests/test_morphometry.py's ranges are the ones the anatomy-literature page states, each with its
+    sources; the parameters it leaves untested are named there too."""
+    from .test_morphometry import PUBLISHED, UNSOURCED
+
+    page = (DOCS / "validation" / "anatomy-literature.md").read_text()
+    stated = [name for name, (lo, hi) in PUBLISHED.items()
+              if not any(f"{a}-{b}" in page for a, b in ((f"{lo:g}", f"{hi:g}"), (f"{lo:.1f}", f"{hi:.1f}")))]
+    assert not stated, f"ranges not on the page: {stated}"
+    assert [name for name in UNSOURCED if name not in page] == []
