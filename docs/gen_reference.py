@@ -81,6 +81,8 @@ def cli_markdown() -> str:
     lines += ["| argument | meaning |", "|---|---|"]
     lines += [_flag_row(parser, a) for a in parser._actions
               if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))]
+    if parser.epilog:
+        lines += ["", "Example:", "", "```sh", parser.epilog.strip().removeprefix("example:").strip(), "```"]
     lines += [""]
     for name, sub in _subparsers(parser):
         lines += _command(f"bonecad {name}", sub, 2)
