@@ -1,13 +1,17 @@
 """bonecad: CT scans and meshes of long bones to native CAD models.
 
 The Python API mirrors the pipeline, one function per stage; settings default
-to the shipped ones (``Settings.load()``, from ``data/defaults.toml``)::
+to the shipped ones (``Settings.load()``, from ``data/defaults.toml``):
 
     bone = bonecad.load_bone("tibia.stl")          # BoneMesh (mm)
     frame = bonecad.anatomical_frame(bone)         # AnatomicalFrame
     result = bonecad.reconstruct("tibia.stl", "out")
-    ts = bonecad.tspline.read_tspline("patch.tsm")  # .tsm <-> T-spline (bonecad.splines.tspline)
+    ts = bonecad.tspline.read_tspline("patch.tsm")  # .tsm <-> T-spline (bonecad.tspline)
     bonecad.write_tsm(result.models["tspline"], "bone.tsm")  # the model as one closed Fusion cage
+
+The public API is ``__all__`` below (this module's names and ``bonecad.tspline``, the T-spline library)
+and ``STAGES``: the stage functions and tables a script calls beyond them. The documentation's API
+reference is generated from these two lists, and ``tests/test_docs.py`` checks every entry has a docstring.
 """
 from __future__ import annotations
 
@@ -49,6 +53,22 @@ __all__ = [
     "write_tsm",
 ]
 
+#: the stages themselves (pure functions of their inputs and their settings section), the exporters' entry
+#: point and the tables scripts read: the public API beyond ``__all__``, as ``module:name``
+STAGES = (
+    "bonecad.mesh.intake:load_bone",
+    "bonecad.anatomy.frame:anatomical_frame",
+    "bonecad.imaging.segment:segment_bone",
+    "bonecad.contours.curves:contour_curves",
+    "bonecad.nurbs_model.model:build_nurbs",
+    "bonecad.tspline_model.model:build_tspline_model",
+    "bonecad.analysis.model:model_deviation",
+    "bonecad.anatomy.morphometry:measure_tibia",
+    "bonecad.analysis.shape_model:build_shape_model",
+    "bonecad.export.registry:export",
+    "bonecad.occ.interop:to_cadquery",
+)
+
 
 def load_bone(path: str | Path, *, units: Units = "auto", settings: Settings | None = None) -> BoneMesh:
     """Read, clean and check a tibia mesh; keep the tibia body (see ``bonecad.mesh.intake.load_bone``)."""
@@ -81,9 +101,9 @@ def write_tsm(model, path: str | Path) -> Path:
 
 def __getattr__(name: str):
     if name == "tspline":  # the T-spline library: T-mesh, evaluation, refinement, .tsm read/write
-        import bonecad.splines.tspline as tspline
+        import importlib
 
-        return tspline
+        return importlib.import_module("bonecad.tspline")
     if name == "TibiaParameters":  # the CT stack (scipy.ndimage) is not imported for a mesh
         from bonecad.imaging.phantom_tibia import TibiaParameters
 

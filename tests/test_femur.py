@@ -5,7 +5,7 @@ and its plate region).
 
 The full reconstruction runs on LHDL_CT_femur_r only (70 k triangles, ~70 s on a quiet machine; a second
 femur would cost as much, over the suite's budget); the other three femurs' model figures are measured by
-``benchmarks/bench_pipeline.py femurs`` (README).
+``benchmarks/bench_pipeline.py femurs`` (docs/validation/femurs.md).
 """
 from __future__ import annotations
 

@@ -27,8 +27,8 @@ NAMES = ("length_mm", "max_length_mm", "plateau_width_mm", "medial_plateau_depth
          "medial_posterior_slope_deg", "lateral_posterior_slope_deg", "plafond_width_mm", "plafond_depth_mm",
          "bimalleolar_width_mm", *(f"shaft_{d}_{p}_mm" for d in ("ml", "ap") for p in (20, 35, 50, 65, 80)),
          "torsion_deg")
-# Published adult ranges (README, `measure`: mean +- 2 SD, the union over the cited studies) of the parameters
-# for which a source was found.
+# Published adult ranges (docs/validation/anatomy-literature.md: mean +- 2 SD, the union over the cited studies)
+# of the parameters for which a source was found.
 PUBLISHED = {
     "length_mm": (294.6, 425.0),
     "max_length_mm": (312.0, 482.0),
@@ -39,17 +39,18 @@ PUBLISHED = {
     "lateral_posterior_slope_deg": (-2.3, 14.7),
     "torsion_deg": (17.7, 52.1),
     # Osteometric caliper measures of dry bones, mean +- 2 SD computed from the individual measurements of the
-    # Forensic Data Bank and DPAA reference samples shipped with OsteoSort (README: files, commits, definitions).
+    # Forensic Data Bank and DPAA reference samples shipped with OsteoSort
+    # (docs/validation/anatomy-literature.md: files, commits, definitions).
     "plafond_depth_mm": (23.5, 37.2),
     "bimalleolar_width_mm": (41.0, 58.7),
     "shaft_ap_50_mm": (23.4, 35.1),
     "shaft_ap_65_mm": (26.6, 42.4),
     "shaft_ml_65_mm": (18.3, 30.4),
-    # The same computed from the individuals of the Goldman Osteometric Data Set (bioanth's copy; README: commit,
+    # The same from the individuals of the Goldman Osteometric Data Set (bioanth's copy; the same page: commit,
     # columns, what its documentation leaves open).
     "shaft_ml_50_mm": (16.8, 26.6),
 }
-# The parameters left untested, each with its reason (README, `measure`: what was searched).
+# The parameters left untested, each with its reason (docs/validation/anatomy-literature.md: what was searched).
 _NO_SOURCE = "no published adult mean and SD found for this definition"
 UNSOURCED = {
     "plafond_width_mm": _NO_SOURCE + " (the tibial plafond width is named in CT studies, without figures)",

@@ -68,14 +68,17 @@ class AnatomicalFrame:
 
     @property
     def lateral(self) -> np.ndarray:
+        """Unit vector towards lateral (the bone frame's x)."""
         return self.axes[0]
 
     @property
     def anterior(self) -> np.ndarray:
+        """Unit vector towards anterior (y)."""
         return self.axes[1]
 
     @property
     def proximal(self) -> np.ndarray:
+        """Unit vector towards proximal along the mechanical axis (z)."""
         return self.axes[2]
 
     @property

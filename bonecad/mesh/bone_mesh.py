@@ -71,6 +71,7 @@ class BoneMesh:
 
     @property
     def triangle_count(self) -> int:
+        """Number of triangles."""
         return int(len(self.faces))
 
     def to_trimesh(self):

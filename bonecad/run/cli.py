@@ -80,14 +80,18 @@ def _add_boundaries(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="bonecad",
-        description="Turn a CT scan or mesh of a tibia into native CAD models (NURBS and T-spline).",
+        description="Turn a CT scan or mesh of a human long bone (tibia or femur) into native CAD models "
+        "(NURBS and T-spline) with their deviation, continuity and zebra analysis, for implant design.",
+        epilog="example: bonecad reconstruct tibia.stl --out out   (bonecad COMMAND --help: each command's options)",
     )
     parser.add_argument("--version", action=_Version, nargs=0, help="print versions (bonecad, OCP, build123d)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("inspect", help="summarise a bone mesh: units, bodies, tibia, side, defects repaired",
-                       description="Read and clean a mesh; print its units, bodies (volume, length), which body "
-                       "is the tibia, the side (left/right, from the anatomy), watertightness and repairs.")
+    p = sub.add_parser("inspect", help="summarise a bone mesh: units, bodies, the bone kept (tibia or femur), side, "
+                       "repairs", description="Read and clean a mesh; print its units, bodies (volume, length), which "
+                       "body is the tibia (or the femur), the side (left/right, from the anatomy), watertightness and "
+                       "repairs.",
+                       epilog="example: bonecad inspect tibia.stl --json")
     p.add_argument("mesh", type=Path, help="STL, OBJ, PLY or OFF file")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     _add_common(p)
@@ -95,21 +99,24 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("frame", help="anatomical frame: axes, planes, plateau ellipse -> frame.json, curves.step",
                        description="Find the mechanical axis, the L-M and A-P planes, the plateau ellipse, the "
                        "local proximal axis and the region boundaries; write frame.json and curves.step "
-                       "(points, lines, planes as native CAD entities) into --out.")
+                       "(points, lines, planes as native CAD entities) into --out.",
+                       epilog="example: bonecad frame femur.stl --bone femur --out frame-out")
     _add_stage(p)
 
     p = sub.add_parser("curves", help="contour curves as B-spline edges -> curves.step/.iges/.json/.png",
                        description="Section the tibia (distal and proximal half-planes, shaft planes), rebuild "
                        "every section as a cubic B-spline within its tolerance, and write curves.step and "
                        "curves.iges (curves and reference entities), curves.json (poles, knots, achieved "
-                       "deviation, repairs), curves.png and frame.json into --out.")
+                       "deviation, repairs), curves.png and frame.json into --out.",
+                       epilog="example: bonecad curves tibia.stl --out curves-out --distal-boundary 60")
     _add_stage(p)
 
     p = sub.add_parser("measure", help="the tibia's morphometric parameters (lengths, widths, slopes, torsion)",
                        description="Measure the standard morphometric parameters of a tibia in its anatomical "
                        "frame (lengths, plateau and plafond sizes, posterior slopes, shaft diameters at 20-80 %% of "
-                       "the length, tibial torsion; the README lists the definitions) and print them as a table; "
-                       "--out writes them as JSON or as one CSV row.")
+                       "the length, tibial torsion; the documentation's Measuring a tibia guide lists the definitions) "
+                       "and print them as a table; --out writes them as JSON or as one CSV row.",
+                       epilog="example: bonecad measure tibia.stl --out tibia.csv")
     p.add_argument("input", type=Path, help="mesh file (STL, OBJ, PLY, OFF) or CT volume (DICOM folder, .nii, "
                    ".nii.gz, .nrrd, .mha)")
     p.add_argument("--out", type=Path, help="file to write: .json or .csv")
@@ -119,7 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="The whole pipeline: frame, contour curves, the NURBS baseline and/or the "
                        "T-spline model, their deviation/continuity/zebra analysis. Writes nurbs.step/.iges, "
                        "tspline.step/.iges/.json/.tsm, curves.step/.iges/.json, frame.json, report.json, report.html "
-                       "and PNG figures into --out.")
+                       "and PNG figures into --out.",
+                       epilog="example: bonecad reconstruct ct_folder/ --out out --model tspline")
     _add_stage(p)
     p.add_argument("--model", choices=["nurbs", "tspline", "both"], default=None,
                    help="which models to build (default: both, or [pipeline] models of --config)")
@@ -133,7 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "the T-spline, with its deviation from the mesh and a check that it thickens into a plate "
                        "blank: patch.step, patch.iges and patch.json into --out. The region: a named one of the "
                        f"[patch] settings on the bone, or a height range (mm above {ORIGINS}) and an angle range "
-                       "(degrees from lateral towards anterior: 90 anterior, 180 medial).")
+                       "(degrees from lateral towards anterior: 90 anterior, 180 medial).",
+                       epilog="example: bonecad patch out --region anteromedial_distal_tibia --out plate-out")
     p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--region", help="a named region on the bone: " + "; ".join(
@@ -147,7 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("segment", help="CT volume -> tibia surface mesh",
                        description="Read a CT volume (DICOM folder, .nii/.nii.gz, .nrrd, .mha), segment the "
                        "tibia (cortical bone threshold, marrow filled, fibula/femur/talus separated) and write its "
-                       "surface (marching cubes, Taubin smoothing) in world mm (DICOM LPS).")
+                       "surface (marching cubes, Taubin smoothing) in world mm (DICOM LPS).",
+                       epilog="example: bonecad segment ct_folder/ --out tibia.stl")
     p.add_argument("ct", type=Path, help="DICOM folder or volume file")
     p.add_argument("--out", type=Path, required=True, help="mesh file to write (.stl, .ply, .obj, .off)")
     _add_common(p)
@@ -155,7 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("convert", help="a .tsm T-spline (Rhino convention, no star points) -> tspline.step",
                        description="Read a #TS0200 .tsm file, check its structure (a malformed file exits 2 "
                        "naming the line and the problem), evaluate it with bonecad's T-spline rules (clamped "
-                       "boundaries through the Rhino grip map; no star points) and write tspline.step into --out.")
+                       "boundaries through the Rhino grip map; no star points) and write tspline.step into --out.",
+                       epilog="example: bonecad convert patch.tsm --out convert-out")
     p.add_argument("input", type=Path, help=".tsm file")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     _add_logging(p)
@@ -169,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "versions), points/<id>.npy and surface/<id>.npz into --out. A bad or failing bone is "
                        "reported and the rest completes; each finished bone is journalled in OUT/.bones, so an "
                        "interrupted run resumes where it stopped. Exit status: 0 every bone done, 2 some bad "
-                       "input, 1 some failed (the table is written in every case).")
+                       "input, 1 some failed (the table is written in every case).",
+                       epilog="example: bonecad cohort --demo 20 --out demo-cohort --workers 2")
     p.add_argument("input", type=Path, nargs="?", help="folder of bones or CSV manifest (not with --demo)")
     p.add_argument("--out", type=Path, required=True, help="output folder (and the journal of a resumed run)")
     p.add_argument("--workers", type=int, metavar="N",
@@ -189,9 +201,11 @@ def build_parser() -> argparse.ArgumentParser:
                        "control points, optional "
                        "surface/<bone>.npz): mean, modes, compactness, leave-one-out generalisation to each "
                        "bone's surface with two baselines, specificity; shape_model.npz, shape_model.json and "
-                       "shape_modes.png into OUT.")
+                       "shape_modes.png into OUT.",
+                       epilog="example: bonecad shape-model build model --from demo-cohort")
     shape_sub = p.add_subparsers(dest="shape_command", required=True, metavar="ACTION")
-    q = shape_sub.add_parser("build", help="build a shape model from a cohort folder")
+    q = shape_sub.add_parser("build", help="build a shape model from a cohort folder",
+                             epilog="example: bonecad shape-model build model --from demo-cohort --alignment rigid")
     q.add_argument("out", type=Path, help="output folder")
     q.add_argument("--from", dest="cohort", type=Path, required=True, help="cohort folder")
     q.add_argument("--alignment", choices=["none", "rigid", "similarity"], default=None,
@@ -204,7 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "model's, e.g. --length 380 --plateau-width 78: a flag is a parameter's name without its "
                        "unit suffix; values outside the training range are refused) or from mode weights in SD "
                        "(--modes 1.0,-0.5). Writes morph.step, morph.iges, morph.tsm, morph_points.npy and "
-                       "morph.json (mode weights, predicted parameters, those measured back on the morph) into --out.")
+                       "morph.json (mode weights, predicted parameters, those measured back on the morph) into --out.",
+                       epilog="example: bonecad morph --model model --length 380 --plateau-width 78 --out morph-out")
     p.add_argument("--model", type=Path, required=True, help="shape model folder or its shape_model.npz")
     p.add_argument("--modes", help="comma-separated mode weights in standard deviations")
     p.add_argument("--out", type=Path, required=True, help="output folder")
@@ -213,7 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
                        description="Generate the synthetic phantom tibia and run every stage available on it; "
-                       "write phantom.stl and the stage outputs into --out.")
+                       "write phantom.stl and the stage outputs into --out.",
+                       epilog="example: bonecad demo --out demo-out")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     _add_common(p)
     return parser

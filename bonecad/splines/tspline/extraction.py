@@ -54,6 +54,7 @@ class BezierExtraction:
 
     @property
     def n_elements(self) -> int:
+        """Number of Bezier elements."""
         return len(self.index_bounds)
 
     @cached_property

@@ -153,6 +153,7 @@ class TMesh:
     # ------------------------------------------------------------- geometry
     @property
     def periodic(self) -> bool:
+        """Whether the s direction is periodic (closed round the bone)."""
         return self.s_period is not None
 
     @property
@@ -181,6 +182,7 @@ class TMesh:
 
     @property
     def t_range(self) -> tuple[float, float]:
+        """(first, last) t knot line."""
         return float(self.t_lines[0]), float(self.t_lines[-1])
 
     # ------------------------------------------------------------- topology

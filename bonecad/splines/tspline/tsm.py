@@ -99,23 +99,28 @@ class TSMDocument:
         return dict(self.header).get(key)
 
     def line_of(self, kind: str, index: int) -> int:
+        """The file's line number of record ``index`` of ``kind`` (0 when unknown), for error messages."""
         lines = self.record_lines.get(kind)
         return int(lines[index]) if lines is not None and 0 <= index < len(lines) else 0
 
     @property
     def live_faces(self) -> np.ndarray:
+        """Indices of the faces not deleted."""
         return np.flatnonzero(self.faces[:, 0] >= 0)
 
     @property
     def live_edges(self) -> np.ndarray:
+        """Indices of the edges not deleted."""
         return np.flatnonzero(self.edges >= 0)
 
     @property
     def live_vertices(self) -> np.ndarray:
+        """Indices of the vertices not deleted."""
         return np.flatnonzero(self.vertices >= 0)
 
     @property
     def live_links(self) -> np.ndarray:
+        """Indices of the links not deleted."""
         return np.flatnonzero(self.links[:, 0] >= 0)
 
     def unit_mm(self) -> float:

@@ -79,6 +79,7 @@ class TSpline:
     # ------------------------------------------------------------ properties
     @property
     def n_control(self) -> int:
+        """Number of control points."""
         return len(self.control_points)
 
     @cached_property
