@@ -58,6 +58,8 @@ def test_nurbs_histogram_matches_golden(stem):
     assert_histogram_matches(deviation.mesh_to_cad.histogram, f"nurbs_{stem}", tolerance=TOLERANCE)
     for region, histogram in deviation.mesh_to_cad.region_histograms.items():
         assert_histogram_matches(histogram, f"nurbs_{stem}_{region}", tolerance=TOLERANCE)
+    # the other direction, where a fold or a stray sheet of the model shows (issue 45)
+    assert_histogram_matches(deviation.cad_to_mesh.histogram, f"nurbs_{stem}_cad_to_mesh", tolerance=TOLERANCE)
 
 
 def test_tspline_histogram_matches_golden(tmp_path):
@@ -75,6 +77,7 @@ def test_tspline_histogram_matches_golden(tmp_path):
     deviation = shape_deviation(bone.vertices, bone.faces, tessellate(shape, TESSELLATION),
                                 regions=region_labels(frame), edges_mm=BANDS_MM, sample_points=SAMPLES)
     assert_histogram_matches(deviation.mesh_to_cad.histogram, f"tspline_{stem}", tolerance=TOLERANCE)
+    assert_histogram_matches(deviation.cad_to_mesh.histogram, f"tspline_{stem}_cad_to_mesh", tolerance=TOLERANCE)
 
 
 def test_perturbed_model_is_caught():
