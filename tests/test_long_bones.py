@@ -40,3 +40,16 @@ def test_two_bones_end_to_end_are_refused_as_fused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(path) in err and "two bones seem fused" in err and "femur (300-620 mm)" in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_a_half_plane_whose_longest_piece_returns_to_the_apex_still_gives_its_curve(tmp_path):
+    """VSD z009's femur (507 mm): near the distal apex the 70 degree half-plane's longest piece of section
+    leaves the apex hole and comes back to it; the curve is the piece that runs from the apex to the region
+    boundary (this was an internal error, exit 1)."""
+    path = PAIRS / "VSD_z009_femur_r.stl"
+    if not path.exists():
+        pytest.skip(f"{path} is absent")
+    assert main(["curves", str(path), "--out", str(tmp_path / "out"), "-q"]) == 0
+    curves = json.loads((tmp_path / "out" / "curves.json").read_text())
+    assert curves

@@ -158,35 +158,36 @@ def half_plane_polyline(
     notes = []
     if not loops:
         raise FitError(f"the {angle_deg:g} degree half-plane misses the bone")
-    best = None
-    pieces = 0
+    pieces, candidates = 0, []
     for loop in loops:
         r = (loop - axis_point) @ d
         z = loop[:, 2]
+        n = len(loop)
         inside = (r > apex_radius) & ((z - boundary_z) * towards > 0)
         for run in _runs(inside):
             pieces += 1
-            if best is None or len(run) > len(best[0]):
-                best = (run, loop, r, z)
-    if best is None:
+            # Ends: exact crossings of the apex circle (r = apex_radius) and the boundary plane.
+            before, after = (run[0] - 1) % n, (run[-1] + 1) % n
+            end_a = _end_point(loop, r, z, before, run[0], apex_radius, boundary_z, towards)
+            end_b = _end_point(loop, r, z, run[-1], after, apex_radius, boundary_z, towards)
+            candidates.append((run, loop, end_a, end_b))
+    if not candidates:
         raise FitError(f"the {angle_deg:g} degree half-plane holds no bone beyond the apex hole")
-    run, loop, r, z = best
-    n = len(loop)
-    if pieces > 1:
-        notes.append(f"dropped {pieces - 1} spurious piece(s) of section in the half-plane")
-    # Ends: exact crossings of the apex circle (r = apex_radius) and the boundary plane.
-    before, after = (run[0] - 1) % n, (run[-1] + 1) % n
-    end_a = _end_point(loop, r, z, before, run[0], apex_radius, boundary_z, towards)
-    end_b = _end_point(loop, r, z, run[-1], after, apex_radius, boundary_z, towards)
-    points = np.vstack([end_a[0], loop[run], end_b[0]])
-    kinds = (end_a[1], end_b[1])
-    if kinds == ("boundary", "apex"):
-        points = points[::-1]
-    elif kinds != ("apex", "boundary"):
+    # the curve runs from the apex hole to the boundary plane: the longest piece that does (a piece that
+    # leaves the apex hole and comes back to it, where the bone bulges round the axis, is not the curve)
+    spanning = [c for c in candidates if {c[2][1], c[3][1]} == {"apex", "boundary"}]
+    if not spanning:
+        kinds = max(candidates, key=lambda c: len(c[0]))
         raise FitError(
             f"the {angle_deg:g} degree half-plane section does not run from the apex to the region boundary "
-            f"(its ends meet the {kinds[0]} and the {kinds[1]})"
+            f"(its ends meet the {kinds[2][1]} and the {kinds[3][1]})"
         )
+    run, loop, end_a, end_b = max(spanning, key=lambda c: len(c[0]))
+    if pieces > 1:
+        notes.append(f"dropped {pieces - 1} spurious piece(s) of section in the half-plane")
+    points = np.vstack([end_a[0], loop[run], end_b[0]])
+    if (end_a[1], end_b[1]) == ("boundary", "apex"):
+        points = points[::-1]
     return points, notes
 
 
