@@ -1,0 +1,240 @@
+"""The 22 femoral landmarks raters pick (Fischer et al. 2020, Sci. Rep. 10:20859), found from the femur's
+anatomy: docs/guides/femur-landmarks.md gives each definition and how close it comes to five raters.
+
+Most are where a ray from an anatomical centre leaves the bone, in a direction fixed in a local anatomical
+frame: the head points from the head's centre, the neck isthmus points from the centroid of the neck's
+narrowest section, the condyle points from the centres of the posterior condyle spheres. The directions
+are the raters' mean directions on the ten landmarked femurs of ../shared/data/femur_pairs, expressed in
+those frames (lateral, anterior, proximal components, the same for a left and a right femur). The
+trochanters, the intertrochanteric crest and the epicondyles are prominences: extreme points within an
+anatomical window. All points are on the surface, scanner coordinates (mm).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from bonecad.anatomy.landmarks import Sphere
+from bonecad.errors import FitError
+from bonecad.mesh.sections import section_mesh
+
+#: abbreviation -> name, in the raters' order (the README of ../shared/data/femur_pairs)
+NAMES = {
+    "SFH": "superior femoral head", "AFH": "anterior femoral head", "LFH": "lateral femoral head",
+    "PFH": "posterior femoral head", "MFH": "medial femoral head", "IFH": "inferior femoral head",
+    "SNI": "superior neck isthmus", "ANI": "anterior neck isthmus", "INI": "inferior neck isthmus",
+    "PNI": "posterior neck isthmus", "SGT": "superior greater trochanter", "LT": "lesser trochanter",
+    "PITC": "posterior intertrochanteric crest", "PLC": "posterior lateral condyle",
+    "PMC": "posterior medial condyle", "PPLC": "proximoposterior lateral condyle",
+    "PPMC": "proximoposterior medial condyle", "LEC": "lateral epicondyle", "MEC": "medial epicondyle",
+    "ICN": "intercondylar notch", "DLC": "distal lateral condyle", "DMC": "distal medial condyle",
+}
+
+# Head points: rays from the head centre. Frame "hip": z the mechanical axis (knee centre -> head centre),
+# x the neck's direction (head -> neck) across it, y anterior. Frame "neck": x along the neck axis
+# (head -> neck), y anterior across it, z up across it. The raters' mean direction on ten femurs (their
+# spread about it, median / max, degrees): SFH 2.1/4.6, AFH 2.7/4.2, PFH 1.9/3.4, MFH 3.8/8.3 (hip),
+# LFH 4.8/8.7, IFH 6.5/12.4 (neck: the lateral and inferior points lie where the head meets the neck).
+_HEAD_RAYS = {
+    "SFH": ("hip", (0.02, 0.01, 1.0)), "AFH": ("hip", (-0.01, 1.0, 0.08)), "PFH": ("neck", (-0.1, -1.0, 0.0)),
+    "MFH": ("hip", (-0.99, 0.01, 0.15)), "LFH": ("neck", (0.32, 0.02, 0.95)), "IFH": ("neck", (0.12, -0.03, -0.99)),
+}
+# Neck isthmus: the section across the neck axis where the neck is narrowest. Its area changes by 1-2 %
+# over 0.2-0.4 head radii there, so the level is the middle of the levels whose area is within this
+# factor of the least (the raters' sections lie 0.91-1.18 radii from the head centre) ...
+_ISTHMUS_AREA_FACTOR = 1.05
+_ISTHMUS_SEARCH_RADII = (0.7, 1.6)
+# ... and the points are where rays from its centroid, at these angles from anterior towards superior in
+# the "neck" frame, cross its outline (the raters' mean angles; spread 3-5 degrees, ANI's 4-18).
+_ISTHMUS_ANGLES_DEG = {"SNI": 87.0, "ANI": 9.0, "INI": -90.0, "PNI": 179.0}
+# Condyle points: rays from the centre of each posterior condyle's sphere, in the bone frame (lateral,
+# anterior, proximal). Raters' spread about the mean: PLC/PMC 4-5
+# degrees, PPLC/PPMC 7-8, DLC/DMC 5-7.
+_CONDYLE_RAYS = {
+    "PLC": (1, (0.06, -1.0, 0.03)), "PMC": (0, (-0.03, -1.0, -0.04)),
+    "PPLC": (1, (-0.17, -0.63, 0.76)), "PPMC": (0, (-0.1, -0.61, 0.78)),
+    "DLC": (1, (0.14, 0.24, -0.96)), "DMC": (0, (0.12, 0.22, -0.97)),
+}
+# The notch: in the section across the posterior condylar axis through the middle of the two condyle
+# centres (which lies on the notch's roof), walking from there forwards down the roof, the first point where
+# the outline, over the next 3 mm, falls less than 25 degrees below the horizontal: the roof's anterior
+# end, where it meets the trochlea's distal surface (the raters' point is within 0.5-3 mm of it).
+_NOTCH_STEP_MM = 3.0
+_NOTCH_SLOPE_DEG = 25.0
+
+
+def _ray_exit(vertices: np.ndarray, faces: np.ndarray, start: np.ndarray, direction: np.ndarray,
+              reach: float) -> np.ndarray:
+    """The first point beyond ``start`` (within ``reach`` mm) where the ray along ``direction`` crosses the
+    surface."""
+    from bonecad.anatomy.frame import _ray_hits
+
+    direction = direction / np.linalg.norm(direction)
+    near = faces[np.linalg.norm(vertices[faces].mean(axis=1) - start, axis=1) < reach]
+    hits = _ray_hits(vertices, near, start, direction)
+    hits = hits[hits > 1e-6]
+    if not len(hits):
+        raise FitError(f"no surface within {reach:.0f} mm of {np.round(start, 1).tolist()} along "
+                       f"{np.round(direction, 3).tolist()}")
+    return start + hits[0] * direction
+
+
+def _hip_frames(head: Sphere, neck_centre: np.ndarray, knee: np.ndarray, anterior: np.ndarray
+                ) -> dict[str, np.ndarray]:
+    """The "hip" and "neck" frames (rows x, y, z) of the module docstring."""
+    c = head.centre
+    z = (c - knee) / np.linalg.norm(c - knee)
+    neck = (neck_centre - c) / np.linalg.norm(neck_centre - c)
+    x = neck - (neck @ z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    y *= np.sign(y @ anterior)
+    ny = np.cross(neck, z)
+    ny /= np.linalg.norm(ny)
+    ny *= np.sign(ny @ anterior)
+    nz = np.cross(neck, ny)
+    nz *= np.sign(nz @ z)
+    return {"hip": np.vstack([x, y, z]), "neck": np.vstack([neck, ny, nz])}
+
+
+def _loop_area(loop: np.ndarray, normal: np.ndarray) -> float:
+    return 0.5 * float(abs(np.cross(loop, np.roll(loop, -1, axis=0)).sum(axis=0) @ normal))
+
+
+def _isthmus(vertices, faces, head: Sphere, neck: np.ndarray) -> np.ndarray:
+    """The outline (p, 3) of the neck's narrowest section across the neck axis (rows of ``neck``: axis
+    towards the neck first)."""
+    c, r, n = head.centre, head.radius_mm, neck[0]
+    levels = np.arange(_ISTHMUS_SEARCH_RADII[0], _ISTHMUS_SEARCH_RADII[1] + 1e-9, 0.02) * r
+
+    def section(level: float) -> np.ndarray | None:
+        point = c + level * n
+        loops = section_mesh(vertices, faces, point, n).loops()
+        if not loops:
+            return None
+        loop = min(loops, key=lambda lp: np.linalg.norm(lp.mean(axis=0) - point))
+        return loop if np.linalg.norm(loop.mean(axis=0) - point) < 0.4 * r else None
+
+    areas = np.array([_loop_area(lp, n) if (lp := section(h)) is not None else np.inf for h in levels])
+    if not np.isfinite(areas).any():
+        raise FitError("no section across the femoral neck")
+    narrow = levels[areas <= _ISTHMUS_AREA_FACTOR * areas.min()]
+    loop = section(float(narrow.mean()))
+    if loop is None:
+        raise FitError("no section across the femoral neck at its isthmus")
+    return loop
+
+
+def _outline_point(loop: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """The vertex of a section outline seen from its centroid closest to ``direction``."""
+    rel = loop - loop.mean(axis=0)
+    return loop[int(np.argmax(rel @ direction / np.linalg.norm(rel, axis=1)))]
+
+
+def femur_points(vertices: np.ndarray, faces: np.ndarray, *, head: Sphere, neck_axis: np.ndarray,
+                 knee: np.ndarray, axes: np.ndarray, shaft_axis: np.ndarray, condyle_centres: np.ndarray,
+                 condyle_radii: np.ndarray, epicondyle_reach_mm: float) -> dict[str, np.ndarray]:
+    """The 22 landmarks (abbreviation -> point on the surface, scanner mm) of ``NAMES``.
+
+    axes : the bone frame's rows lateral, anterior, proximal. condyle_centres, condyle_radii : the posterior
+    condyle spheres (rows medial, lateral). epicondyle_reach_mm : the epicondyles are sought within this
+    distance of the posterior condylar axis.
+    """
+    frames = _hip_frames(head, neck_axis[1], knee, axes[1])
+    reach = 3.0 * head.radius_mm
+    out: dict[str, np.ndarray] = {}
+    for name, (frame, d) in _HEAD_RAYS.items():
+        out[name] = _ray_exit(vertices, faces, head.centre, np.asarray(d) @ frames[frame], reach)
+
+    neck = frames["neck"]
+    loop = _isthmus(vertices, faces, head, neck)
+    for name, angle in _ISTHMUS_ANGLES_DEG.items():
+        a = np.radians(angle)
+        out[name] = _outline_point(loop, np.cos(a) * neck[1] + np.sin(a) * neck[2])
+
+    out.update(_trochanters(vertices, faces, head, frames["hip"], shaft_axis, axes, out))
+
+    for name, (i, d) in _CONDYLE_RAYS.items():
+        out[name] = _ray_exit(vertices, faces, condyle_centres[i], np.asarray(d) @ axes,
+                              3.0 * float(condyle_radii[i]))
+    out["ICN"] = _notch(vertices, faces, condyle_centres, axes)
+    out["MEC"], out["LEC"] = _epicondyles(vertices, condyle_centres, axes, epicondyle_reach_mm)
+    return {name: out[name] for name in NAMES}
+
+
+def _trochanters(vertices, faces, head: Sphere, hip: np.ndarray, shaft_axis: np.ndarray, axes: np.ndarray,
+                 found: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """SGT, LT and PITC: prominences of the proximal femur (``found`` holds the neck isthmus points)."""
+    c, r = head.centre, head.radius_mm
+    local = (vertices - c) @ hip.T  # x towards the neck, y anterior, z up the mechanical axis
+    out = {}
+    # the greater trochanter's top: the highest point lateral of the neck (beyond 1.5 head radii)
+    beyond = local[:, 0] > 1.5 * r
+    if not beyond.any():
+        raise FitError("no bone lateral of the femoral neck (greater trochanter)")
+    out["SGT"] = vertices[beyond][int(np.argmax(local[beyond, 2]))]
+    # the lesser trochanter: the point farthest from the shaft axis towards the back and the inside (100-170
+    # degrees from lateral towards posterior), 1.5-4.5 head radii below the head centre
+    a, b = shaft_axis
+    d = (b - a) / np.linalg.norm(b - a)
+    rel = vertices - a - ((vertices - a) @ d)[:, None] * d
+    across = rel @ axes[:2].T  # lateral, anterior
+    angle = np.degrees(np.arctan2(across[:, 1], across[:, 0]))
+    window = (local[:, 2] < -1.5 * r) & (local[:, 2] > -4.5 * r) & (angle < -100.0) & (angle > -170.0)
+    if not window.any():
+        raise FitError("no bone behind and inside the shaft below the femoral neck (lesser trochanter)")
+    i_lt = np.flatnonzero(window)[int(np.argmax(np.hypot(across[window, 0], across[window, 1])))]
+    out["LT"] = vertices[i_lt]
+    # the intertrochanteric crest: the most posterior point (10 degrees towards the head) of the section
+    # across the mechanical axis a fifth of the way down from the neck's inferior isthmus to the lesser
+    # trochanter, lateral of the head centre
+    z_ini = float((found["INI"] - c) @ hip[2])
+    level = z_ini + 0.2 * (float(local[i_lt, 2]) - z_ini)
+    loops = section_mesh(vertices, faces, c + level * hip[2], hip[2]).loops()
+    outline = np.vstack(loops) if loops else np.zeros((0, 3))
+    lateral = outline[(outline - c) @ hip[0] > 0.5 * r]
+    if not len(lateral):
+        raise FitError("no section through the intertrochanteric crest")
+    back = np.array([-np.sin(np.radians(10.0)), -np.cos(np.radians(10.0)), 0.0]) @ hip
+    out["PITC"] = lateral[int(np.argmax(lateral @ back))]
+    return out
+
+
+def _epicondyles(vertices, condyle_centres: np.ndarray, axes: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The medial and lateral epicondyles: the points farthest along the posterior condylar axis (through the
+    two condyle spheres' centres) among the surface within ``reach`` mm of that axis, so that neither the
+    condyles' articular rims nor osteophytes at them (farther from the axis) are taken for them."""
+    m, lat = condyle_centres
+    d = (lat - m) / np.linalg.norm(lat - m)
+    rel = vertices - m
+    along = rel @ d
+    off = np.linalg.norm(rel - along[:, None] * d, axis=1)
+    near = off < reach
+    if not near.any():
+        raise FitError("no surface near the posterior condylar axis")
+    idx = np.flatnonzero(near)
+    return vertices[idx[int(np.argmin(along[near]))]], vertices[idx[int(np.argmax(along[near]))]]
+
+
+def _notch(vertices, faces, condyle_centres: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """The intercondylar notch point (see ``_NOTCH_SLOPE_DEG``)."""
+    middle = condyle_centres.mean(axis=0)
+    across = (condyle_centres[1] - condyle_centres[0]) / np.linalg.norm(condyle_centres[1] - condyle_centres[0])
+    loops = section_mesh(vertices, faces, middle, across).loops()
+    if not loops:
+        raise FitError("no section through the intercondylar notch")
+    loop = min(loops, key=lambda lp: float(np.linalg.norm(lp - middle, axis=1).min()))
+    local = (loop - middle) @ axes.T
+    n = len(loop)
+    start = int(np.argmin(np.linalg.norm(local, axis=1)))
+    step = 1 if local[(start + 3) % n, 1] > local[(start - 3) % n, 1] else -1  # walk forwards
+    order = (start + step * np.arange(n)) % n
+    path = local[order]
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+    for j in range(n):
+        k = int(np.searchsorted(arc, arc[j] + _NOTCH_STEP_MM))
+        if k >= n or arc[j] > 60.0:
+            break
+        chord = path[k] - path[j]
+        if np.degrees(np.arctan2(-chord[2], chord[1])) < _NOTCH_SLOPE_DEG and path[j, 2] < -3.0:
+            return loop[order[j]]
+    raise FitError("no anterior end of the intercondylar notch's roof within 60 mm of the condyle centres")
