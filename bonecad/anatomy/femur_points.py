@@ -54,6 +54,10 @@ _CONDYLE_RAYS = {
     "PPLC": (1, (-0.17, -0.63, 0.76)), "PPMC": (0, (-0.1, -0.61, 0.78)),
     "DLC": (1, (0.14, 0.24, -0.96)), "DMC": (0, (0.12, 0.22, -0.97)),
 }
+# The epicondyles are sought about lines parallel to the posterior condylar axis (through the two condyle
+# spheres' centres) this far (mm) anterior and proximal of each condyle's centre: the raters' mean offsets
+# (SD 1.6-2.2 mm across the ten femurs); rows medial, lateral.
+_EPICONDYLE_OFFSETS_MM = ((8.3, 5.1), (3.9, 5.2))
 # The notch: in the section across the posterior condylar axis through the middle of the two condyle
 # centres (which lies on the notch's roof), walking from there forwards down the roof, the first point where
 # the outline, over the next 3 mm, falls less than 25 degrees below the horizontal: the roof's anterior
@@ -132,21 +136,23 @@ def _outline_point(loop: np.ndarray, direction: np.ndarray) -> np.ndarray:
 
 def femur_points(vertices: np.ndarray, faces: np.ndarray, *, head: Sphere, neck_axis: np.ndarray,
                  knee: np.ndarray, axes: np.ndarray, shaft_axis: np.ndarray, condyle_centres: np.ndarray,
-                 condyle_radii: np.ndarray, epicondyle_reach_mm: float) -> dict[str, np.ndarray]:
+                 condyle_radii: np.ndarray, epicondyle_reach_mm: float, epicondyle_cap_mm: float
+                 ) -> dict[str, np.ndarray]:
     """The 22 landmarks (abbreviation -> point on the surface, scanner mm) of ``NAMES``.
 
+    neck_axis : the head centre and the centroid of the neck's narrowest section (``anatomy.femur``).
     axes : the bone frame's rows lateral, anterior, proximal. condyle_centres, condyle_radii : the posterior
-    condyle spheres (rows medial, lateral). epicondyle_reach_mm : the epicondyles are sought within this
-    distance of the posterior condylar axis.
+    condyle spheres (rows medial, lateral). epicondyle_reach_mm, epicondyle_cap_mm : see ``_epicondyles``.
     """
+    hip_faces = faces[np.linalg.norm(vertices[faces].mean(axis=1) - head.centre, axis=1) < 3.0 * head.radius_mm]
     frames = _hip_frames(head, neck_axis[1], knee, axes[1])
+    loop = _isthmus(vertices, hip_faces, head, frames["neck"])
     reach = 3.0 * head.radius_mm
     out: dict[str, np.ndarray] = {}
     for name, (frame, d) in _HEAD_RAYS.items():
         out[name] = _ray_exit(vertices, faces, head.centre, np.asarray(d) @ frames[frame], reach)
 
     neck = frames["neck"]
-    loop = _isthmus(vertices, faces, head, neck)
     for name, angle in _ISTHMUS_ANGLES_DEG.items():
         a = np.radians(angle)
         out[name] = _outline_point(loop, np.cos(a) * neck[1] + np.sin(a) * neck[2])
@@ -157,7 +163,7 @@ def femur_points(vertices: np.ndarray, faces: np.ndarray, *, head: Sphere, neck_
         out[name] = _ray_exit(vertices, faces, condyle_centres[i], np.asarray(d) @ axes,
                               3.0 * float(condyle_radii[i]))
     out["ICN"] = _notch(vertices, faces, condyle_centres, axes)
-    out["MEC"], out["LEC"] = _epicondyles(vertices, condyle_centres, axes, epicondyle_reach_mm)
+    out["MEC"], out["LEC"] = _epicondyles(vertices, condyle_centres, axes, epicondyle_reach_mm, epicondyle_cap_mm)
     return {name: out[name] for name in NAMES}
 
 
@@ -199,20 +205,30 @@ def _trochanters(vertices, faces, head: Sphere, hip: np.ndarray, shaft_axis: np.
     return out
 
 
-def _epicondyles(vertices, condyle_centres: np.ndarray, axes: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
-    """The medial and lateral epicondyles: the points farthest along the posterior condylar axis (through the
-    two condyle spheres' centres) among the surface within ``reach`` mm of that axis, so that neither the
-    condyles' articular rims nor osteophytes at them (farther from the axis) are taken for them."""
-    m, lat = condyle_centres
-    d = (lat - m) / np.linalg.norm(lat - m)
-    rel = vertices - m
-    along = rel @ d
-    off = np.linalg.norm(rel - along[:, None] * d, axis=1)
-    near = off < reach
-    if not near.any():
-        raise FitError("no surface near the posterior condylar axis")
-    idx = np.flatnonzero(near)
-    return vertices[idx[int(np.argmin(along[near]))]], vertices[idx[int(np.argmax(along[near]))]]
+def _epicondyles(vertices, condyle_centres: np.ndarray, axes: np.ndarray, reach: float, cap: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The medial and lateral epicondyles: the tops of the prominences farthest out along the posterior
+    condylar axis among the surface within ``reach`` mm of the lines ``_EPICONDYLE_OFFSETS_MM`` give; the top
+    is the vertex nearest the middle of the surface within ``cap`` mm of the farthest point (a broad,
+    flat epicondyle has no single farthest point). The articular rims of the condyles and osteophytes on
+    them lie farther from those lines and are never taken for the epicondyles."""
+    d = condyle_centres[1] - condyle_centres[0]
+    d /= np.linalg.norm(d)
+    anterior = axes[1] - (axes[1] @ d) * d
+    anterior /= np.linalg.norm(anterior)
+    up = np.cross(d, anterior)
+    up *= np.sign(up @ axes[2])
+    found = []
+    for centre, (ahead, above), outward in zip(condyle_centres, _EPICONDYLE_OFFSETS_MM, (-1.0, 1.0)):
+        rel = vertices - (centre + ahead * anterior + above * up)
+        along = outward * (rel @ d)
+        near = np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1) < reach
+        if not near.any():
+            raise FitError("no surface near the posterior condylar axis at an epicondyle")
+        top = vertices[near & (along >= along[near].max() - cap)]
+        spread = top - top.mean(axis=0)
+        found.append(top[int(np.argmin(np.linalg.norm(spread - (spread @ d)[:, None] * d, axis=1)))])
+    return found[0], found[1]
 
 
 def _notch(vertices, faces, condyle_centres: np.ndarray, axes: np.ndarray) -> np.ndarray:
