@@ -12,7 +12,9 @@ maximal length, the anteversion and the neck-shaft angle, the asymmetry a contra
 side mirrored) carries.
 
 The landmarks' directions and offsets (``anatomy.femur_points``) are the raters' means on these same ten
-femurs: the figures are in-sample.
+femurs: the figures are in-sample. For the landmarks found by a ray in a fixed direction (head and condyle
+points), a leave-one-out check follows: each femur's ray along the raters' mean direction on the nine
+others.
 
 Run: .venv/bin/python benchmarks/bench_femur_landmarks.py   (about 30 s)
 """
@@ -27,6 +29,7 @@ import numpy as np
 
 from bonecad.anatomy.femur import femur_frame, fit_sphere
 from bonecad.anatomy.femur_morphometry import ASYMMETRY, asymmetry, measure_femur
+from bonecad.anatomy import femur_points
 from bonecad.anatomy.femur_points import NAMES
 from bonecad.mesh.bone_mesh import BoneMesh
 from bonecad.mesh.intake import read_mesh_file
@@ -56,9 +59,11 @@ def main() -> int:
     errors: dict[str, list[float]] = {name: [] for name in NAMES}
     bands: dict[str, list[float]] = {name: [] for name in NAMES}
     head_errors, tea_errors = [], []
+    rays: dict[str, dict] = {}  # key -> (frames, raters' means): for the leave-one-out check
     for key in sorted(rated):
         subject, side = key.rsplit("_", 1)
-        frame = femur_frame(load(PAIRS / f"VSD_{subject}_femur_{side}.stl"), settings=settings.femur)
+        bone = load(PAIRS / f"VSD_{subject}_femur_{side}.stl")
+        frame = femur_frame(bone, settings=settings.femur)
         raters = {name: np.asarray(entry["raters"], dtype=float) for name, entry in rated[key].items()}
         means = {}
         for name in NAMES:
@@ -66,6 +71,7 @@ def main() -> int:
             means[name] = mean
             errors[name].append(float(np.linalg.norm(frame.femur.points[name] - mean)))
             bands[name].append(float(np.linalg.norm(raters[name].mean(axis=1) - mean, axis=1).max()))
+        rays[key] = {"frame": frame, "means": means, "mesh": (bone.work.vertices, bone.work.faces)}
         centre = fit_sphere(np.vstack([raters[n].reshape(-1, 3) for n in HEAD_POINTS]))[0]
         head_errors.append(float(np.linalg.norm(frame.femur.head.centre - centre)))
         theirs = means["LEC"] - means["MEC"]
@@ -90,6 +96,8 @@ def main() -> int:
     print(f"transepicondylar axis vs the raters': {', '.join(f'{a:.1f}' for a in tea_errors)} deg "
           f"(median {np.median(tea_errors):.1f}, {sum(a < 3.0 for a in tea_errors)}/{n} within 3 deg)")
 
+    leave_one_out(rays, bands)
+
     print("\nLeft-right asymmetry (right minus left), both femurs of a subject")
     print(f"{'subject':8} " + " ".join(f"{name:>22}" for name in ASYMMETRY))
     diffs = []
@@ -109,6 +117,37 @@ def main() -> int:
     print(f"{'|median|':8} " + " ".join(f"{v:22.1f}" for v in np.median(a, axis=0)))
     print(f"{'|max|':8} " + " ".join(f"{v:22.1f}" for v in a.max(axis=0)))
     return 0
+
+
+def _ray_starts(frame) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """landmark -> (ray start, frame rows) of the ray-found landmarks of ``femur_points``."""
+    lm = frame.femur
+    hip = femur_points._hip_frames(lm.head, lm.neck_axis[1], lm.knee_centre, frame.axes[1])
+    out = {name: (lm.head.centre, hip[which]) for name, (which, _) in femur_points._HEAD_RAYS.items()}
+    out.update({name: (lm.condyle_centres[i], frame.axes) for name, (i, _) in femur_points._CONDYLE_RAYS.items()})
+    return out
+
+
+def leave_one_out(rays: dict[str, dict], bands: dict[str, list[float]]) -> None:
+    """Each ray-found landmark with its direction the raters' mean on the other femurs."""
+    keys = sorted(rays)
+    starts = {k: _ray_starts(rays[k]["frame"]) for k in keys}
+    print("\nLeave-one-out (ray directions from the other nine femurs): median / max error, within the band")
+    for name in (*femur_points._HEAD_RAYS, *femur_points._CONDYLE_RAYS):
+        local = {}
+        for k in keys:
+            start, rows = starts[k][name]
+            d = rays[k]["means"][name] - start
+            local[k] = rows @ (d / np.linalg.norm(d))
+        errors, within = [], 0
+        for j, k in enumerate(keys):
+            direction = np.mean([local[o] for o in keys if o != k], axis=0)
+            start, rows = starts[k][name]
+            v, f = rays[k]["mesh"]
+            point = femur_points._ray_exit(v, f, start, direction @ rows, 100.0)
+            errors.append(float(np.linalg.norm(point - rays[k]["means"][name])))
+            within += errors[-1] <= bands[name][j]
+        print(f"{name:6} {np.median(errors):6.2f} {max(errors):6.2f}  {within:>3}/{len(keys)}")
 
 
 if __name__ == "__main__":

@@ -5,7 +5,9 @@ transepicondylar axis within 3 degrees of theirs; and the same landmarks on a fe
 mirrored.
 
 The frame stage alone runs (``femur_frame`` on the mesh as read, merged; no recognition: two of these
-femurs are over 500 mm), about 0.5 s per femur.
+femurs are over 500 mm), about 0.5 s per femur. Then ``bonecad measure`` on femurs: the measurements of the
+LHDL, TLEM2 and every femur of the pairs inside the published adult ranges (``data/femur_ranges.toml``), and
+the JSON/CSV files (slow: 21 femurs measured, about a minute on a loaded machine).
 """
 from __future__ import annotations
 
@@ -165,6 +167,7 @@ def _measure(path, settings):
     return measure_femur(bone, femur_frame(bone, settings=settings.femur))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", measured_femurs())
 def test_femur_measurements_lie_in_the_published_adult_ranges(path, settings):
     from bonecad.anatomy.femur_morphometry import published_ranges
@@ -197,6 +200,7 @@ def test_canal_width_is_the_inner_loop_of_a_hollow_section():
     assert np.isnan(canal_width([outer]))
 
 
+@pytest.mark.slow
 def test_measure_writes_a_femurs_json_and_csv(tmp_path):
     from bonecad.run.cli import main
 
