@@ -4,8 +4,9 @@ Femoral head (a sphere fitted by least squares to the surface found by a
 Hough vote of the face normals at the narrow end), neck axis, knee centre
 (between the condyles, just above the distal articular surface), posterior
 condyle spheres, epicondyles and the transepicondylar axis, mechanical axis
-(knee centre -> head centre), anatomical (shaft) axis, side, and the ISB femur
-frame (Wu et al. 2002). The bone frame the later stages use is the tibia's
+(knee centre -> head centre), anatomical (shaft) axis, side, the raters' 22
+landmarks (``anatomy.femur_points``: head, neck isthmus, trochanters, condyles,
+epicondyles, notch) and the ISB femur frame (Wu et al. 2002). The bone frame the later stages use is the tibia's
 convention: origin at the knee centre, z proximal along the mechanical axis,
 y anterior, x lateral (mirrored for a left femur), so the contour and model
 stages need no femur cases; the proximal end region's local axis runs from the
