@@ -119,19 +119,20 @@ def main() -> int:
     return 0
 
 
-def _ray_starts(frame) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _ray_starts(frame, mesh) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """landmark -> (ray start, frame rows) of the ray-found landmarks of ``femur_points``."""
     lm = frame.femur
     hip = femur_points._hip_frames(lm.head, lm.neck_axis[1], lm.knee_centre, frame.axes[1])
+    distal = femur_points.distal_frame(*mesh, lm.knee_centre, frame.axes, lm.condyle_centres)
     out = {name: (lm.head.centre, hip[which]) for name, (which, _) in femur_points._HEAD_RAYS.items()}
-    out.update({name: (lm.condyle_centres[i], frame.axes) for name, (i, _) in femur_points._CONDYLE_RAYS.items()})
+    out.update({name: (lm.condyle_centres[i], distal) for name, (i, _) in femur_points._CONDYLE_RAYS.items()})
     return out
 
 
 def leave_one_out(rays: dict[str, dict], bands: dict[str, list[float]]) -> None:
     """Each ray-found landmark with its direction the raters' mean on the other femurs."""
     keys = sorted(rays)
-    starts = {k: _ray_starts(rays[k]["frame"]) for k in keys}
+    starts = {k: _ray_starts(rays[k]["frame"], rays[k]["mesh"]) for k in keys}
     print("\nLeave-one-out (ray directions from the other nine femurs): median / max error, within the band")
     for name in (*femur_points._HEAD_RAYS, *femur_points._CONDYLE_RAYS):
         local = {}
