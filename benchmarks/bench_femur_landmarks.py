@@ -16,7 +16,7 @@ femurs: the figures are in-sample. For the landmarks found by a ray in a fixed d
 points), a leave-one-out check follows: each femur's ray along the raters' mean direction on the nine
 others.
 
-Run: .venv/bin/python benchmarks/bench_femur_landmarks.py   (about 30 s)
+Run: .venv/bin/python benchmarks/bench_femur_landmarks.py   (44 s on a loaded machine)
 """
 from __future__ import annotations
 

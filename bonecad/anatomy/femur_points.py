@@ -59,9 +59,10 @@ _CONDYLE_RAYS = {
     "PPLC": (1, (-0.16, -0.77, 0.62)), "PPMC": (0, (-0.09, -0.76, 0.64)),
     "DLC": (1, (0.13, 0.43, -0.89)), "DMC": (0, (0.11, 0.41, -0.91)),
 }
-# The lesser trochanter's top: the middle of the surface within this (mm) of its farthest point from the shaft
-# axis (8 of 10 femurs within the raters' spread at 0.5-2 mm, 7 with the farthest vertex alone).
-_LT_CAP_MM = 1.0
+# The top of a prominence (the greater and lesser trochanters): the vertex nearest the middle of the surface
+# within this (mm) of its farthest point (SGT 10 and LT 8 of 10 femurs within the raters' spread at 0.5-2 mm;
+# 9 and 7 with the farthest vertex alone).
+_TOP_CAP_MM = 1.0
 # The epicondyles are sought about lines parallel to the posterior condylar axis (through the two condyle
 # spheres' centres) this far (mm) anterior and proximal of each condyle's centre: the raters' mean offsets
 # (SD 1.6-2.2 mm across the ten femurs); rows medial, lateral.
@@ -153,6 +154,12 @@ def _isthmus(vertices, faces, head: Sphere, neck: np.ndarray) -> np.ndarray:
     return loop
 
 
+def _top(vertices: np.ndarray, cap: np.ndarray) -> np.ndarray:
+    """The vertex of the boolean mask ``cap`` nearest the mean of its vertices."""
+    points = vertices[cap]
+    return points[int(np.argmin(np.linalg.norm(points - points.mean(axis=0), axis=1)))]
+
+
 def _outline_point(loop: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """The vertex of a section outline seen from its centroid closest to ``direction``."""
     rel = loop - loop.mean(axis=0)
@@ -199,14 +206,15 @@ def _trochanters(vertices, faces, head: Sphere, hip: np.ndarray, shaft_axis: np.
     c, r = head.centre, head.radius_mm
     local = (vertices - c) @ hip.T  # x towards the neck, y anterior, z up the mechanical axis
     out = {}
-    # the greater trochanter's top: the highest point lateral of the neck (beyond 1.5 head radii)
+    # the greater trochanter's top: of the bone lateral of the neck (beyond 1.5 head radii), the middle of the
+    # surface within _TOP_CAP_MM of the highest point along the mechanical axis
     beyond = local[:, 0] > 1.5 * r
     if not beyond.any():
         raise FitError("no bone lateral of the femoral neck (greater trochanter)")
-    out["SGT"] = vertices[beyond][int(np.argmax(local[beyond, 2]))]
+    out["SGT"] = _top(vertices, beyond & (local[:, 2] >= local[beyond, 2].max() - _TOP_CAP_MM))
     # the lesser trochanter: the top of the prominence farthest from the shaft axis towards the back and the
     # inside (110-160 degrees from lateral towards posterior; the raters' 113-152), 1.5-4.5 head radii below
-    # the head centre: the vertex nearest the middle of the surface within _LT_CAP_MM of the farthest
+    # the head centre (its top: _TOP_CAP_MM)
     a, b = shaft_axis
     d = (b - a) / np.linalg.norm(b - a)
     rel = vertices - a - ((vertices - a) @ d)[:, None] * d
@@ -216,14 +224,12 @@ def _trochanters(vertices, faces, head: Sphere, hip: np.ndarray, shaft_axis: np.
     window = (local[:, 2] < -1.5 * r) & (local[:, 2] > -4.5 * r) & (angle < -110.0) & (angle > -160.0)
     if not window.any():
         raise FitError("no bone behind and inside the shaft below the femoral neck (lesser trochanter)")
-    cap = np.flatnonzero(window & (radial >= radial[window].max() - _LT_CAP_MM))
-    i_lt = cap[int(np.argmin(np.linalg.norm(vertices[cap] - vertices[cap].mean(axis=0), axis=1)))]
-    out["LT"] = vertices[i_lt]
+    out["LT"] = _top(vertices, window & (radial >= radial[window].max() - _TOP_CAP_MM))
     # the intertrochanteric crest: the most posterior point (10 degrees towards the head) of the section
     # across the mechanical axis a fifth of the way down from the neck's inferior isthmus to the lesser
     # trochanter, lateral of the head centre
     z_ini = float((found["INI"] - c) @ hip[2])
-    level = z_ini + 0.2 * (float(local[i_lt, 2]) - z_ini)
+    level = z_ini + 0.2 * (float((out["LT"] - c) @ hip[2]) - z_ini)
     loops = section_mesh(vertices, faces, c + level * hip[2], hip[2]).loops()
     outline = np.vstack(loops) if loops else np.zeros((0, 3))
     lateral = outline[(outline - c) @ hip[0] > 0.5 * r]
