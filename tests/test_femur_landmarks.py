@@ -241,3 +241,26 @@ def test_measure_writes_a_femurs_json_and_csv(tmp_path):
     assert main(["measure", str(path), "--bone", "femur", "--out", str(tmp_path / "m.csv"), "-q"]) == 0
     header, row = (tmp_path / "m.csv").read_text().splitlines()
     assert header.split(",")[2] == "max_length_mm" and len(row.split(",")) == len(header.split(","))
+
+
+def test_an_osteophyte_on_a_condyles_rim_is_not_taken_for_the_epicondyle(settings):
+    """A bump 8 mm high grown on the lateral condyle's rim 15+ mm distal of the epicondyle (now the most
+    lateral point of the knee end, which the former rule took) leaves the lateral epicondyle in place."""
+    from bonecad.anatomy.femur import femur_frame
+    from bonecad.mesh.bone_mesh import BoneMesh
+
+    if not RATED:
+        pytest.skip(f"{LANDMARKS} is absent")
+    bone = femur_mesh(RATED[0])
+    frame = femur_frame(bone, settings=settings.femur)
+    lec, lateral, up = frame.femur.points["LEC"], frame.axes[0], frame.axes[2]
+    v = bone.vertices.copy()
+    rel = v - lec
+    rim = np.flatnonzero((rel @ up < -15.0) & (np.linalg.norm(rel, axis=1) < 40.0))
+    tip = rim[int(np.argmax(v[rim] @ lateral))]
+    bump = 8.0 * np.exp(-((np.linalg.norm(v - v[tip], axis=1) / 3.0) ** 2))
+    v += bump[:, None] * lateral
+    knee_end = (v - frame.origin) @ up < settings.femur.condyle_search_mm
+    assert int(np.argmax(np.where(knee_end, v @ lateral, -np.inf))) == tip  # the knee end's most lateral point
+    grown = femur_frame(BoneMesh(vertices=v, faces=bone.faces, source=bone.source), settings=settings.femur)
+    assert np.linalg.norm(grown.femur.points["LEC"] - lec) < 1.0
