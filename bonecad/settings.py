@@ -134,7 +134,8 @@ class FemurSettings:
     """The femur's frame: its length (mm); the head's search (share of the length from the narrow end),
     radius range, Hough bin, inlier band (mm), least sphere coverage and least offset from the long axis
     (mm); the knee centre's search (share of the length); the condyles' search height (mm); flare ratios
-    and region boundaries as [anatomy]'s."""
+    and region boundaries as [anatomy]'s; the epicondyles' search radius about the condylar axis and the
+    cap of their tops (mm)."""
 
     length_mm: tuple[float, float]
     head_search_share: float
@@ -149,6 +150,8 @@ class FemurSettings:
     proximal_flare_ratio: float
     distal_boundary_mm: float
     proximal_boundary_mm: float
+    epicondyle_reach_mm: float
+    epicondyle_cap_mm: float
 
 
 @dataclass(frozen=True)

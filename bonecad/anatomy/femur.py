@@ -4,8 +4,9 @@ Femoral head (a sphere fitted by least squares to the surface found by a
 Hough vote of the face normals at the narrow end), neck axis, knee centre
 (between the condyles, just above the distal articular surface), posterior
 condyle spheres, epicondyles and the transepicondylar axis, mechanical axis
-(knee centre -> head centre), anatomical (shaft) axis, side, and the ISB femur
-frame (Wu et al. 2002). The bone frame the later stages use is the tibia's
+(knee centre -> head centre), anatomical (shaft) axis, side, the raters' 22
+landmarks (``anatomy.femur_points``: head, neck isthmus, trochanters, condyles,
+epicondyles, notch) and the ISB femur frame (Wu et al. 2002). The bone frame the later stages use is the tibia's
 convention: origin at the knee centre, z proximal along the mechanical axis,
 y anterior, x lateral (mirrored for a left femur), so the contour and model
 stages need no femur cases; the proximal end region's local axis runs from the
@@ -17,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from bonecad.anatomy.ellipse import fit_ellipse
+from bonecad.anatomy.femur_points import femur_points
 from bonecad.anatomy.landmarks import FemurLandmarks, Sphere
 from bonecad.anatomy.frame import (AnatomicalFrame, PlateauEllipse, _area_weighted_axis, _axis_exits,
                                    _plafond_centre, _region_boundaries, _unit_normals)
@@ -175,8 +177,12 @@ def femur_frame(bone: BoneMesh, *, settings: FemurSettings) -> AnatomicalFrame:
     lateral = right if side == "right" else -right
     axes = np.vstack([lateral, anterior, z])
     condyle_c, condyle_r = _posterior_condyles(vertices, faces, knee, z, anterior, lateral, settings)
-    epicondyles = _epicondyles(vertices, h, lateral, settings)
-    neck_axis = _neck_axis(vertices, faces, head, shaft_axis)
+    neck_axis = _neck_axis(vertices, faces, head, shaft_axis, anterior)
+    points = femur_points(vertices, faces, head=head, neck_axis=neck_axis, knee=knee, axes=axes,
+                          shaft_axis=shaft_axis, condyle_centres=condyle_c, condyle_radii=condyle_r,
+                          epicondyle_reach_mm=settings.epicondyle_reach_mm,
+                          epicondyle_cap_mm=settings.epicondyle_cap_mm)
+    epicondyles = np.vstack([points["MEC"], points["LEC"]])
     y_isb = head.centre - epicondyles.mean(axis=0)
     y_isb /= np.linalg.norm(y_isb)
     tea = epicondyles[1] - epicondyles[0]
@@ -198,7 +204,7 @@ def femur_frame(bone: BoneMesh, *, settings: FemurSettings) -> AnatomicalFrame:
     _, proximal_apex = _axis_exits(vertices, faces, below_trochanters, neck_up)
     landmarks = FemurLandmarks(head=head, neck_axis=neck_axis, knee_centre=knee, condyle_centres=condyle_c,
                                condyle_radii_mm=condyle_r, epicondyles=epicondyles, shaft_axis=shaft_axis,
-                               isb_axes=isb)
+                               isb_axes=isb, points=points)
     return AnatomicalFrame(
         side=side, origin=origin, axes=axes, plateau_centre=head.centre, plafond_centre=knee,
         plateau=replace_level(condyles, origin, z), mechanical_length_mm=mech_length,
@@ -264,14 +270,6 @@ def _anterior(vertices, faces, knee, z, ml, mech_length, shaft_axis) -> np.ndarr
     return -ap if offset > 0 else ap
 
 
-def _epicondyles(vertices, h, lateral, settings: FemurSettings) -> np.ndarray:
-    """The most medial and most lateral points of the knee end (within ``condyle_search_mm`` above the
-    knee centre's level): rows medial, lateral."""
-    near = vertices[h < settings.condyle_search_mm]
-    across = near @ lateral
-    return np.vstack([near[np.argmin(across)], near[np.argmax(across)]])
-
-
 def _posterior_condyles(vertices, faces, knee, z, anterior, lateral, settings: FemurSettings
                         ) -> tuple[np.ndarray, np.ndarray]:
     """Spheres fitted to the posterior-facing surface of each condyle (rows medial, lateral): centres, radii."""
@@ -291,16 +289,20 @@ def _posterior_condyles(vertices, faces, knee, z, anterior, lateral, settings: F
     return np.array(out_c), np.array(out_r)
 
 
-def _neck_axis(vertices, faces, head: Sphere, shaft_axis: np.ndarray) -> np.ndarray:
+def _neck_axis(vertices, faces, head: Sphere, shaft_axis: np.ndarray, anterior: np.ndarray) -> np.ndarray:
     """The neck axis: from the head centre to the centroid of the neck's smallest section 1.3-1.6 head radii
     from the centre, over planes whose normals lie within 60 degrees of the line from the head centre to
     the shaft axis and whose section is centred on the neck (a plane perpendicular to the neck cuts it
-    smallest)."""
+    smallest); ``anterior`` orients the planes' grid."""
     a, b = shaft_axis
     d = (b - a) / np.linalg.norm(b - a)
     foot = a + ((head.centre - a) @ d) * d
     towards = (foot - head.centre) / np.linalg.norm(foot - head.centre)
-    u, v = plane_basis(towards)
+    # the planes' tilts turn about ``towards`` from the anterior direction, so that the axis found moves
+    # with the bone (a basis from the scanner's axes gave a neck axis 0.2-0.8 mm apart on a moved femur)
+    u = anterior - (anterior @ towards) * towards
+    u /= np.linalg.norm(u)
+    v = np.cross(towards, u)
     tilt = np.radians(np.arange(0.0, 61.0, 10.0))
     turn = np.radians(np.arange(0.0, 360.0, 30.0))
     directions = [towards] + [np.cos(t) * towards + np.sin(t) * (np.cos(p) * u + np.sin(p) * v)

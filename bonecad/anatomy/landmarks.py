@@ -1,7 +1,7 @@
 """Landmarks of bones other than the tibia, carried by the anatomical frame (scanner coordinates, mm)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -21,7 +21,8 @@ class Sphere:
 class FemurLandmarks:
     """The femur's own entities, scanner coordinates (mm).
 
-    condyle_centres, epicondyles : rows medial, lateral. isb_axes : rows x (anterior), y (proximal,
+    condyle_centres, epicondyles : rows medial, lateral. points : the raters' 22 landmarks by abbreviation
+    (``anatomy.femur_points.NAMES``; MEC and LEC are the epicondyles). isb_axes : rows x (anterior), y (proximal,
     epicondyle midpoint -> head centre), z (right), origin at the head centre (Wu et al. 2002).
     """
 
@@ -33,6 +34,7 @@ class FemurLandmarks:
     epicondyles: np.ndarray  # (2, 3)
     shaft_axis: np.ndarray  # (2, 3) points of the anatomical axis at the shaft's ends
     isb_axes: np.ndarray  # (3, 3)
+    points: dict[str, np.ndarray] = field(default_factory=dict)  # abbreviation -> (3,)
 
     @property
     def neck_shaft_angle_deg(self) -> float:
@@ -58,4 +60,5 @@ class FemurLandmarks:
             "anatomical_axis": {"distal": r(self.shaft_axis[0]), "proximal": r(self.shaft_axis[1])},
             "isb_frame": {"origin": r(self.head.centre), "x_anterior": r(self.isb_axes[0]),
                           "y_proximal": r(self.isb_axes[1]), "z_right": r(self.isb_axes[2])},
+            "landmarks": {name: r(p) for name, p in self.points.items()},
         }

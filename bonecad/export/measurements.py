@@ -1,19 +1,22 @@
-"""`bonecad measure`'s file: a tibia's morphometric parameters as JSON or as one CSV row.
+"""`bonecad measure`'s file: a tibia's or a femur's morphometric parameters as JSON or as one CSV row.
 
 JSON: {"input", "side", "frame", "values": {name: value}, "units": {name: unit},
 "definitions": {name: definition}} in the order of ``PARAMETERS``. CSV: a header
 (input, side, then every parameter name) and one row, so the rows of many
-bones stack into one table.
+bones stack into one table. A value the mesh does not show (a femur's canal on an outer surface) is null
+in JSON and empty in CSV.
 """
 from __future__ import annotations
 
 import csv
 import io
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from bonecad.anatomy.morphometry import PARAMETER_NAMES, PARAMETERS, TibiaMeasurements
+from bonecad.anatomy.femur_morphometry import FemurMeasurements
+from bonecad.anatomy.morphometry import PARAMETERS, TibiaMeasurements
 from bonecad.errors import InputError
 from bonecad.staging import staged_file
 
@@ -23,30 +26,44 @@ SUFFIXES = (".json", ".csv")
 
 @dataclass(frozen=True)
 class MeasurementsDocument:
-    """One tibia's parameters and the input they were measured on."""
+    """One bone's parameters and the input they were measured on."""
 
     input_file: str
-    measurements: TibiaMeasurements
+    measurements: TibiaMeasurements | FemurMeasurements
+
+    @property
+    def parameters(self) -> tuple[tuple[str, str, str], ...]:
+        """(name, unit, definition) of the bone's parameters."""
+        return getattr(self.measurements, "parameters", PARAMETERS)
+
+    @property
+    def bone(self) -> str:
+        return getattr(self.measurements, "bone", "tibia")
 
     def as_dict(self) -> dict:
         """The JSON content; values rounded to 0.001 (mm, degrees)."""
         values = self.measurements.values()
+        origin = "knee centre (on the anatomical axis)" if self.bone == "femur" else "plafond centre"
         return {
             "input": self.input_file,
+            "bone": self.bone,
             "side": self.measurements.side,
-            "frame": "anatomical: origin plafond centre, x lateral, y anterior, z proximal (a left tibia mirrored)",
-            "values": {name: round(values[name], 3) for name in PARAMETER_NAMES},
-            "units": {name: unit for name, unit, _ in PARAMETERS},
-            "definitions": {name: definition for name, _, definition in PARAMETERS},
+            "frame": f"anatomical: origin {origin}, x lateral, y anterior, z proximal (a left {self.bone} mirrored)",
+            "values": {name: None if math.isnan(values[name]) else round(values[name], 3)
+                       for name, _, _ in self.parameters},
+            "units": {name: unit for name, unit, _ in self.parameters},
+            "definitions": {name: definition for name, _, definition in self.parameters},
         }
 
     def csv_text(self) -> str:
         """A header and one row."""
         values = self.measurements.values()
+        names = [name for name, _, _ in self.parameters]
         out = io.StringIO()
         writer = csv.writer(out, lineterminator="\n")
-        writer.writerow(["input", "side", *PARAMETER_NAMES])
-        writer.writerow([self.input_file, self.measurements.side, *(f"{values[n]:.3f}" for n in PARAMETER_NAMES)])
+        writer.writerow(["input", "side", *names])
+        writer.writerow([self.input_file, self.measurements.side,
+                         *("" if math.isnan(values[n]) else f"{values[n]:.3f}" for n in names)])
         return out.getvalue()
 
 

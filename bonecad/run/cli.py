@@ -111,11 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog="example: bonecad curves tibia.stl --out curves-out --distal-boundary 60")
     _add_stage(p)
 
-    p = sub.add_parser("measure", help="the tibia's morphometric parameters (lengths, widths, slopes, torsion)",
+    p = sub.add_parser("measure", help="the tibia's or femur's morphometric parameters (lengths, widths, angles)",
                        description="Measure the standard morphometric parameters of a tibia in its anatomical "
                        "frame (lengths, plateau and plafond sizes, posterior slopes, shaft diameters at 20-80 %% of "
                        "the length, tibial torsion; the documentation's Measuring a tibia guide lists the definitions) "
-                       "and print them as a table; --out writes them as JSON or as one CSV row.",
+                       "or of a femur (lengths, head diameter, neck length and neck-shaft angle, offset, anteversion, "
+                       "condylar width, anterior bow, shaft and canal widths; the Femur landmarks guide) and print "
+                       "them as a table; --out writes them as JSON or as one CSV row.",
                        epilog="example: bonecad measure tibia.stl --out tibia.csv")
     p.add_argument("input", type=Path, help="mesh file (STL, OBJ, PLY, OFF) or CT volume (DICOM folder, .nii, "
                    ".nii.gz, .nrrd, .mha)")
@@ -267,12 +269,11 @@ def _print_inspect(summary: dict) -> None:
 
 
 def _print_measurements(doc) -> None:
-    from bonecad.anatomy.morphometry import PARAMETERS
-
     values = doc.measurements.values()
-    print(f"{doc.input_file}: {doc.measurements.side} tibia (measured as a right one in its anatomical frame)")
-    for name, unit, _ in PARAMETERS:
-        print(f"  {name:<30} {values[name]:>8.1f} {unit}")
+    print(f"{doc.input_file}: {doc.measurements.side} {doc.bone} (measured as a right one in its anatomical frame)")
+    for name, unit, _ in doc.parameters:
+        shown = "-" if values[name] != values[name] else f"{values[name]:.1f}"  # NaN: not shown by the mesh
+        print(f"  {name:<30} {shown:>8} {unit}")
 
 
 def _print_result(result) -> None:

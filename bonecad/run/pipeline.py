@@ -214,8 +214,9 @@ def inspect(path: str | Path, settings: Settings, *, units: Units = "auto") -> d
 
 def run_measure(source: str | Path, settings: Settings, *, units: Units = "auto", out: Path | None = None
                 ) -> MeasurementsDocument:
-    """``bonecad measure``: the tibia's morphometric parameters (``bonecad.anatomy.morphometry``) from a
-    mesh or a CT volume, written to ``out`` (.json or .csv) when given."""
+    """``bonecad measure``: the tibia's or the femur's morphometric parameters (``bonecad.anatomy.morphometry``,
+    ``bonecad.anatomy.femur_morphometry``) from a mesh or a CT volume, written to ``out`` (.json or .csv)
+    when given."""
     from bonecad.export.measurements import check_measurements_path, write_measurements
 
     if out is not None:
@@ -223,9 +224,14 @@ def run_measure(source: str | Path, settings: Settings, *, units: Units = "auto"
     bone = load_input(source, settings, units=units)
     settings = bone_settings(bone, settings)
     frame = bone_frame(bone, settings)
-    if frame.bone != "tibia":
-        raise InputError(f"bonecad measure measures tibias; this is a {frame.bone}", source)
-    doc = MeasurementsDocument(str(source), measure_tibia(bone, frame, settings.morphometry))
+    if frame.bone == "femur":
+        from bonecad.anatomy.femur_morphometry import measure_femur
+
+        doc = MeasurementsDocument(str(source), measure_femur(bone, frame))
+    elif frame.bone == "tibia":
+        doc = MeasurementsDocument(str(source), measure_tibia(bone, frame, settings.morphometry))
+    else:
+        raise InputError(f"bonecad measure measures tibias and femurs; this is a {frame.bone}", source)
     if out is not None:
         write_measurements(doc, out)
     return doc
