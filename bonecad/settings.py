@@ -300,6 +300,51 @@ class PatchSettings:
 
 
 @dataclass(frozen=True)
+class PlateSettings:
+    """``bonecad plate``: the plate's width (distal, proximal end), thickness, gap to the bone, end corner
+    radius and end inset (mm); its holes (count, 0 = by spacing; spacing, end distance, diameter, mm); the
+    screws (diameter, per-hole tilts [along, across] in degrees, maximum and stock step of their length,
+    mm); the joint margin (mm), the fit's sample spacing (mm) and the material's density (g/cm^3)."""
+
+    width_mm: tuple[float, float]
+    thickness_mm: float
+    gap_mm: float
+    end_radius_mm: float
+    end_inset_mm: float
+    holes: int
+    hole_spacing_mm: float
+    hole_end_distance_mm: float
+    hole_diameter_mm: float
+    screw_diameter_mm: float
+    screw_angles_deg: tuple[tuple[float, float], ...]
+    max_screw_length_mm: float
+    stock_step_mm: float
+    joint_margin_mm: float
+    fit_sample_mm: float
+    density_g_cm3: float
+
+    def __post_init__(self) -> None:
+        positive = {"width_mm": min(self.width_mm), "thickness_mm": self.thickness_mm,
+                    "end_radius_mm": self.end_radius_mm, "hole_spacing_mm": self.hole_spacing_mm,
+                    "hole_diameter_mm": self.hole_diameter_mm, "screw_diameter_mm": self.screw_diameter_mm,
+                    "max_screw_length_mm": self.max_screw_length_mm, "stock_step_mm": self.stock_step_mm,
+                    "fit_sample_mm": self.fit_sample_mm, "density_g_cm3": self.density_g_cm3}
+        bad = [k for k, v in positive.items() if not v > 0]
+        if bad:
+            raise ValueError(f"{bad} must be > 0")
+        if self.gap_mm < 0 or self.holes < 0 or self.end_inset_mm < 0 or self.joint_margin_mm < 0:
+            raise ValueError("gap_mm, holes, end_inset_mm and joint_margin_mm must be >= 0")
+        if 2 * self.end_radius_mm > min(self.width_mm) + 1e-9:
+            raise ValueError(f"end_radius_mm {self.end_radius_mm} is more than half the width {min(self.width_mm)}")
+        if self.hole_diameter_mm >= min(self.width_mm):
+            raise ValueError(f"hole_diameter_mm {self.hole_diameter_mm} leaves no plate either side "
+                             f"(width {min(self.width_mm)} mm)")
+        if self.screw_diameter_mm > self.hole_diameter_mm:
+            raise ValueError(f"screw_diameter_mm {self.screw_diameter_mm} does not pass the "
+                             f"{self.hole_diameter_mm} mm hole")
+
+
+@dataclass(frozen=True)
 class PipelineSettings:
     """The runner: which models to build, whether independent stages run on the second core, which bone
     (a profile of data/bones, or "auto": recognised), whether a reconstruction's arrays may live on
@@ -343,6 +388,7 @@ class Settings:
     shape_model: ShapeModelSettings
     analysis: AnalysisSettings
     patch: PatchSettings
+    plate: PlateSettings
     pipeline: PipelineSettings
     cohort: CohortSettings
 

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable
 ExportFn = Callable[[Any, Path], Path]
 
 #: the modules that register exporters
-FORMAT_MODULES = ("bonecad.export.cad", "bonecad.export.documents", "bonecad.export.meshes", "bonecad.export.report",
+FORMAT_MODULES = ("bonecad.export.cad", "bonecad.export.documents", "bonecad.export.meshes", "bonecad.export.plate", "bonecad.export.report",
                   "bonecad.export.tsm")
 
 #: (kind, format) -> exporter, in registration order

@@ -567,6 +567,32 @@ def _check_region_on(bone: str, region, settings: Settings, source: Path) -> Non
                          "(or give --height and --angle)", source)
 
 
+def _surface_of(source: Path, settings: Settings, region, *, mesh: Path | None, units: Units):
+    """The tube (bone coordinates), the frame's axes and origin, the bone mesh, the bone's settings and the
+    heights (mm, bone coordinates) of the apices where the frame's axis leaves the bone (distal, proximal) of a
+    reconstruction's folder or an input, for which the T-spline is built; InputError if ``region`` is a
+    named region not on this bone."""
+    import json
+
+    from bonecad.tspline_model.model import build_tspline_model
+
+    if source.is_dir() and (source / "tspline.json").exists():
+        tube, axes, origin, bone, name = _model_folder(source, mesh, settings)
+        _check_region_on(name, region, settings, source)
+        apices = json.loads((source / "frame.json").read_text())["apices"]
+        ends = [np.asarray(apices[end], dtype=np.float64) for end in ("distal", "proximal")]
+        return tube, axes, origin, bone, settings, tuple(
+            float(((p - origin) @ axes.T)[2]) for p in ends)
+    bone = load_input(source, settings, units=units)
+    settings = bone_settings(bone, settings)
+    _check_region_on(settings.pipeline.bone, region, settings, source)
+    frame, contours, _ = frame_and_contours(bone, settings)
+    model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
+                                apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
+    joints = tuple(float(frame.to_bone(p[None])[0, 2]) for p in (frame.distal_apex, frame.proximal_apex))
+    return model.tspline, frame.axes, frame.origin, bone, settings, joints
+
+
 def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, region, *, mesh: Path | None = None,
               units: Units = "auto"):
     """``bonecad patch``: one region of the T-spline surface as one untrimmed B-spline face.
@@ -579,21 +605,9 @@ def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, regio
     from bonecad.occ.operations import solids, thicken
     from bonecad.occ.brep import is_valid, volume_mm3
     from bonecad.occ.surfaces import make_face
-    from bonecad.tspline_model.model import build_tspline_model
     from bonecad.tspline_model.patch import footprint_patch, mesh_deviation
 
-    source = Path(source)
-    if source.is_dir() and (source / "tspline.json").exists():
-        tube, axes, origin, bone, name = _model_folder(source, mesh, settings)
-        _check_region_on(name, region, settings, source)
-    else:
-        bone = load_input(source, settings, units=units)
-        settings = bone_settings(bone, settings)
-        _check_region_on(settings.pipeline.bone, region, settings, source)
-        frame, contours, _ = frame_and_contours(bone, settings)
-        model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
-                                    apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
-        tube, axes, origin = model.tspline, frame.axes, frame.origin
+    tube, axes, origin, bone, settings, _ = _surface_of(Path(source), settings, region, mesh=mesh, units=units)
     footprint = footprint_patch(tube, region)
     doc = PatchDocument(footprint, axes, origin, {}, {})
     deviation = mesh_deviation(doc.surface, bone.vertices, bone.faces, settings.patch.mesh_samples)
@@ -605,4 +619,42 @@ def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, regio
     doc = replace(doc, mesh_deviation=deviation, plate_blank=plate)
     with staged_output(Path(out_dir)) as stage_dir:
         export("patch", doc, stage_dir)
+    return doc
+
+
+def run_plate(source: str | Path, out_dir: str | Path, settings: Settings, region, *, mesh: Path | None = None,
+              units: Units = "auto"):
+    """``bonecad plate``: a fixation plate on ``region`` of the bone's T-spline surface, its screws and fit.
+
+    source : a reconstruction's output folder or an input (mesh file or CT volume), as for ``run_patch``.
+    Writes plate.step/.iges/.stl, plate_curves.step, screws.csv, plate.json and plate.png into ``out_dir``
+    (all or nothing); returns the PlateDocument.
+    """
+    from bonecad.export.plate import PlateDocument
+    from bonecad.occ.plate import check_plate, plate_solid
+    from bonecad.render.plate import plate_png
+    from bonecad.tspline_model.patch import footprint_patch
+    from bonecad.tspline_model.plate import plan_plate
+
+    timings = Timings()
+    with timings.stage("model"):
+        tube, axes, origin, bone, settings, joints = _surface_of(Path(source), settings, region, mesh=mesh,
+                                                                 units=units)
+    with timings.stage("plan"):
+        footprint = footprint_patch(tube, region)
+        vertices = (bone.vertices - origin) @ axes.T
+        plan = plan_plate(footprint, vertices, bone.faces, joints, settings.plate)
+    with timings.stage("solid"):
+        # the footprint in scanner coordinates, its parameters kept (S_u x S_v turns with a mirrored frame)
+        surface = replace(footprint.surface, poles=footprint.surface.poles @ axes + origin)
+        outward = plan.outward * float(np.sign(np.linalg.det(axes)))
+        holes = [(s.underside @ axes + origin, s.direction @ axes) for s in plan.screws]
+        solid, _ = plate_solid(surface, plan.outline_uv, plan.offset_mm, outward, settings.plate.thickness_mm,
+                               holes, settings.plate.hole_diameter_mm)
+        check = check_plate(solid)
+    doc = PlateDocument(plan, axes, origin, solid, check, dict(timings.seconds))
+    with staged_output(Path(out_dir)) as stage_dir:
+        export("plate", doc, stage_dir)
+        plate_png(stage_dir / "plate.png", plan, vertices, f"{region.name}: {len(plan.screws)} holes, "
+                  f"{settings.plate.thickness_mm:g} mm thick, gap {settings.plate.gap_mm:g} mm")
     return doc
