@@ -316,6 +316,7 @@ class PlateSettings:
     hole_end_distance_mm: float
     hole_diameter_mm: float
     screw_diameter_mm: float
+    screw_direction: Literal["normal", "transverse"]
     screw_angles_deg: tuple[tuple[float, float], ...]
     max_screw_length_mm: float
     stock_step_mm: float

@@ -35,6 +35,10 @@ from bonecad.splines.surface import BSplineSurface
 
 #: Tolerance of the outline's edge on its surface (mm).
 EDGE_TOLERANCE_MM = 1e-6
+#: Edges of the outline (pieces of one periodic curve). As one closed edge, the side wall was one face with
+#: a seam, whose volume FreeCAD 0.20.2 read 16 % short (2150 against 2563 mm^3 on the phantom's plate; the
+#: triangulated plate.stl agrees with OpenCascade's 2563 within 0.1 %).
+OUTLINE_EDGES = 4
 
 
 def underside_face(surface: BSplineSurface, outline_uv: np.ndarray, offset_mm: float, outward: float):
@@ -50,9 +54,17 @@ def underside_face(surface: BSplineSurface, outline_uv: np.ndarray, offset_mm: f
     interpolate.Perform()
     if not interpolate.IsDone():
         raise KernelError("OpenCascade could not interpolate the plate's outline")
-    edge = BRepBuilderAPI_MakeEdge(interpolate.Curve(), support).Edge()
-    BRepLib.BuildCurves3d_s(edge, EDGE_TOLERANCE_MM)
-    wire = BRepBuilderAPI_MakeWire(edge).Wire()
+    curve = interpolate.Curve()
+    first, last = curve.FirstParameter(), curve.LastParameter()
+    wire_maker = BRepBuilderAPI_MakeWire()
+    bounds = np.linspace(first, last, OUTLINE_EDGES + 1)
+    for a, b in zip(bounds[:-1], bounds[1:]):  # edges, not one closed edge: no seam on the side wall
+        edge = BRepBuilderAPI_MakeEdge(curve, support, float(a), float(b)).Edge()
+        BRepLib.BuildCurves3d_s(edge, EDGE_TOLERANCE_MM)
+        wire_maker.Add(edge)
+    if not wire_maker.IsDone():
+        raise KernelError("OpenCascade could not join the plate's outline edges")
+    wire = wire_maker.Wire()
     maker = BRepBuilderAPI_MakeFace(support, wire, True)
     if not maker.IsDone():
         raise KernelError(f"OpenCascade could not trim the plate's underside (error {maker.Error()})")
@@ -123,7 +135,9 @@ def write_stl(shape: TopoDS_Shape, path: Path, deflection_mm: float = 0.02) -> P
 
 
 def check_plate(plate: TopoDS_Shape) -> dict:
-    """Whether ``plate`` is one valid closed solid (BRepCheck), with its volume (mm^3)."""
+    """Whether ``plate`` is one valid closed solid (BRepCheck), with its volume (mm^3; integrated to 1e-8:
+    at the default 1e-6 the phantom's plate, whose top is an offset surface, came out 2563.2 mm^3, at 1e-8
+    2561.3, its 0.02 mm triangulation 2560.9)."""
     found = solids(plate)
     return {"solids": len(found), "valid": len(found) == 1 and is_valid(found[0]),
-            "volume_mm3": round(volume_mm3(plate), 3)}
+            "volume_mm3": round(volume_mm3(plate, 1e-8), 3)}

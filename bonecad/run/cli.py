@@ -170,6 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
                        ("density", "material density (g/cm^3) for the mass")):
         p.add_argument(f"--{flag}", type=float, help=what)
     p.add_argument("--holes", type=int, help="number of holes (0: as many as the spacing allows)")
+    p.add_argument("--screw-direction", choices=["normal", "transverse"],
+                   help="screws along the bone's normal, or that normal across the frame's axis")
     p.add_argument("--screw-angle", type=float, nargs=2, action="append", metavar=("ALONG", "ACROSS"),
                    help="one per hole, in order: the screw's tilt from the bone's normal (degrees) along the plate "
                    "(towards its proximal end) and across it")
@@ -331,7 +333,7 @@ def _plate_flags(args: argparse.Namespace) -> dict:
     names = ("thickness", "gap", "end_radius", "hole_spacing", "hole_diameter", "screw_diameter",
              "max_screw_length", "stock_step", "joint_margin")
     flags = {f"{name}_mm": getattr(args, name) for name in names}
-    return {**flags, "width_mm": width, "holes": args.holes, "screw_angles_deg": args.screw_angle,
+    return {**flags, "width_mm": width, "holes": args.holes, "screw_direction": args.screw_direction, "screw_angles_deg": args.screw_angle,
             "density_g_cm3": args.density}
 
 

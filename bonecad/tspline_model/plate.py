@@ -264,16 +264,20 @@ def segment_distance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndar
 
 
 def _screw_directions(settings: PlateSettings, normal: np.ndarray, along: np.ndarray) -> np.ndarray:
-    """Unit screw directions: the inward normals, tilted by the per-hole angles (along the plate, across)."""
+    """Unit screw directions: the inward normals (made horizontal: "transverse"), tilted by the per-hole
+    angles (along the plate, across)."""
     inward = -normal
+    if settings.screw_direction == "transverse":
+        inward = inward * np.array([1.0, 1.0, 0.0])
+        inward /= np.linalg.norm(inward, axis=1, keepdims=True)
     angles = settings.screw_angles_deg
     if not angles:
         return inward
     if len(angles) != len(normal):
         raise InputError(f"screw_angles_deg gives {len(angles)} pairs for {len(normal)} holes: one pair per hole")
-    along = along - np.einsum("ij,ij->i", along, normal)[:, None] * normal
+    along = along - np.einsum("ij,ij->i", along, inward)[:, None] * inward
     along /= np.linalg.norm(along, axis=1, keepdims=True)
-    across = np.cross(normal, along)
+    across = np.cross(inward, along)  # towards higher angles round the bone
     tilt = np.radians(np.asarray(angles, dtype=np.float64))
     if np.any(np.abs(tilt) >= np.radians(60.0)):
         raise InputError("screw_angles_deg: a tilt of 60 degrees or more from the normal is not a plate screw")
