@@ -14,15 +14,17 @@ import numpy as np
 from bonecad.export.documents import write_json
 from bonecad.export.registry import exporter
 from bonecad.staging import staged_file
+from bonecad.tspline_model.patch import PatchRegion
 from bonecad.tspline_model.plate import PlatePlan, Screw
 
 
 @dataclass(frozen=True)
 class PlateDocument:
-    """``bonecad plate``'s result: the plan (bone coordinates), the frame's axes (3, 3) and origin (3,) that
-    map it to scanner coordinates, the OpenCascade solid and its check (solids, valid, volume_mm3), and the
-    stage times (s)."""
+    """``bonecad plate``'s result: the region asked for, the plan (bone coordinates; its footprint is the face
+    about the region's middle angle), the frame's axes (3, 3) and origin (3,) that map it to scanner
+    coordinates, the OpenCascade solid and its check (solids, valid, volume_mm3), and the stage times (s)."""
 
+    region: PatchRegion
     plan: PlatePlan
     axes: np.ndarray
     origin: np.ndarray
@@ -55,7 +57,8 @@ def _screw_row(doc: PlateDocument, screw: Screw) -> dict:
         "head": _round(doc.point(screw.head)), "entry": _round(doc.point(screw.entry)),
         "direction": _round(doc.vector(screw.direction), 6),
         "length_mm": round(screw.length_mm, 3), "stock_mm": screw.stock_mm,
-        "exit": _round(doc.point(screw.exit)), "bone_path_mm": round(float(np.linalg.norm(screw.exit - screw.entry)), 3),
+        "exit": _round(doc.point(screw.exit)),
+        "bone_path_mm": round(float(np.linalg.norm(screw.exit - screw.entry)), 3),
         "outside_bone_mm": round(screw.outside_mm, 3),
         "clearance_mm": round(screw.clearance_mm, 3) if np.isfinite(screw.clearance_mm) else None,
         "exit_height_mm": round(float(screw.exit[2]), 3),
@@ -72,10 +75,13 @@ def plate_json(doc: PlateDocument, out_dir: Path) -> Path:
         "version": 1,
         "units": "mm",
         "coordinates": "input (scanner) coordinates",
-        "region": plan.footprint.summary()["region"],
+        "region": {"name": doc.region.name, "height_mm": list(doc.region.height_mm),
+                   "angle_deg": list(doc.region.angle_deg)},
+        "face": plan.footprint.summary()["spans"],
         "design": dataclasses.asdict(plan.settings),
         "plate": {**doc.check, "mass_g": round(doc.mass_g, 3), "length_mm": round(plan.length_mm, 3),
-                  "underside_offset_mm": round(plan.offset_mm, 4), "holes": len(plan.screws)},
+                  "underside_offset_mm": round(plan.offset_mm, 4), "underside_smoothing_mm": plan.smoothing_mm,
+                  "holes": len(plan.screws)},
         "fit": plan.fit_summary(),
         "joints": {"distal_apex_height_mm": round(plan.joint_heights_mm[0], 3),
                    "proximal_apex_height_mm": round(plan.joint_heights_mm[1], 3)},

@@ -17,8 +17,8 @@ from collections.abc import Callable, Iterable
 ExportFn = Callable[[Any, Path], Path]
 
 #: the modules that register exporters
-FORMAT_MODULES = ("bonecad.export.cad", "bonecad.export.documents", "bonecad.export.meshes", "bonecad.export.plate", "bonecad.export.report",
-                  "bonecad.export.tsm")
+FORMAT_MODULES = ("bonecad.export.cad", "bonecad.export.documents", "bonecad.export.meshes", "bonecad.export.report",
+                  "bonecad.export.tsm", "bonecad.export.plate")
 
 #: (kind, format) -> exporter, in registration order
 EXPORTERS: dict[tuple[str, str], ExportFn] = {}

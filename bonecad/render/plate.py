@@ -15,12 +15,12 @@ from bonecad.tspline_model.plate import PlatePlan, _offset_points
 def plate_png(path: Path, plan: PlatePlan, vertices: np.ndarray, title: str) -> Path:
     """plate.png: front and side views (bone vertices grey, the plate's outline, the screws from head to tip,
     exits red where a check fails) and the fit colour map; ``vertices`` in bone coordinates."""
-    normal = np.mean(_offset_points(plan.footprint.surface, plan.centre_uv, 1.0, plan.outward)
+    normal = np.mean(_offset_points(plan.underside, plan.centre_uv, 1.0, plan.outward)
                      - plan.centre_points(), axis=0)
     normal[2] = 0.0
     normal /= np.linalg.norm(normal)
     across = np.cross([0.0, 0.0, 1.0], normal)
-    outline = _offset_points(plan.footprint.surface, np.vstack([plan.outline_uv, plan.outline_uv[:1]]),
+    outline = _offset_points(plan.underside, np.vstack([plan.outline_uv, plan.outline_uv[:1]]),
                              plan.offset_mm, plan.outward)
     z0, z1 = outline[:, 2].min() - 25.0, outline[:, 2].max() + 25.0
     bone = vertices[(vertices[:, 2] > z0) & (vertices[:, 2] < z1)]

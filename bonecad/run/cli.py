@@ -333,8 +333,8 @@ def _plate_flags(args: argparse.Namespace) -> dict:
     names = ("thickness", "gap", "end_radius", "hole_spacing", "hole_diameter", "screw_diameter",
              "max_screw_length", "stock_step", "joint_margin")
     flags = {f"{name}_mm": getattr(args, name) for name in names}
-    return {**flags, "width_mm": width, "holes": args.holes, "screw_direction": args.screw_direction, "screw_angles_deg": args.screw_angle,
-            "density_g_cm3": args.density}
+    return {**flags, "width_mm": width, "holes": args.holes, "screw_direction": args.screw_direction,
+            "screw_angles_deg": args.screw_angle, "density_g_cm3": args.density}
 
 
 def settings_of(args: argparse.Namespace):

@@ -634,25 +634,39 @@ def run_plate(source: str | Path, out_dir: str | Path, settings: Settings, regio
     from bonecad.occ.plate import check_plate, plate_solid
     from bonecad.render.plate import plate_png
     from bonecad.tspline_model.patch import footprint_patch
-    from bonecad.tspline_model.plate import plan_plate
+    from bonecad.errors import KernelError
+    from bonecad.mesh.closest import TriangleLocator
+    from bonecad.tspline_model.plate import plan_plate, plate_face
 
     timings = Timings()
     with timings.stage("model"):
         tube, axes, origin, bone, settings, joints = _surface_of(Path(source), settings, region, mesh=mesh,
                                                                  units=units)
     with timings.stage("plan"):
-        footprint = footprint_patch(tube, region)
+        footprint = footprint_patch(tube, plate_face(region, settings.plate))
         vertices = (bone.vertices - origin) @ axes.T
-        plan = plan_plate(footprint, vertices, bone.faces, joints, settings.plate)
-    with timings.stage("solid"):
-        # the footprint in scanner coordinates, its parameters kept (S_u x S_v turns with a mirrored frame)
-        surface = replace(footprint.surface, poles=footprint.surface.poles @ axes + origin)
-        outward = plan.outward * float(np.sign(np.linalg.det(axes)))
-        holes = [(s.underside @ axes + origin, s.direction @ axes) for s in plan.screws]
-        solid, _ = plate_solid(surface, plan.outline_uv, plan.offset_mm, outward, settings.plate.thickness_mm,
-                               holes, settings.plate.hole_diameter_mm)
-        check = check_plate(solid)
-    doc = PlateDocument(plan, axes, origin, solid, check, dict(timings.seconds))
+        faces = bone.faces[:, ::-1] if np.linalg.det(axes) < 0 else bone.faces  # outward in mirrored coordinates
+        locator = TriangleLocator(vertices, faces)
+    for smoothing in (None, *settings.plate.underside_smoothing_mm):  # the exact underside, then smoothed ones
+        with timings.stage("plan"):
+            plan = plan_plate(footprint, vertices, faces, joints, settings.plate, locator, smoothing_mm=smoothing)
+        with timings.stage("solid"):
+            # the underside's surface in scanner coordinates, its parameters kept (S_u x S_v turns with a mirror)
+            surface = replace(plan.underside, poles=plan.underside.poles @ axes + origin)
+            outward = plan.outward * float(np.sign(np.linalg.det(axes)))
+            holes = [(s.underside @ axes + origin, s.direction @ axes) for s in plan.screws]
+            try:
+                solid, _ = plate_solid(surface, plan.outline_uv, plan.offset_mm, outward,
+                                       settings.plate.thickness_mm, holes, settings.plate.hole_diameter_mm)
+                break
+            except KernelError as exc:
+                log.warning("the plate on %s: %s", "the exact underside" if smoothing is None
+                            else f"an underside smoothed at {smoothing:g} mm", exc)
+    else:
+        raise KernelError("no valid plate solid on the exact or any smoothed underside ([plate] "
+                          "underside_smoothing_mm)")
+    check = check_plate(solid)
+    doc = PlateDocument(region, plan, axes, origin, solid, check, dict(timings.seconds))
     with staged_output(Path(out_dir)) as stage_dir:
         export("plate", doc, stage_dir)
         plate_png(stage_dir / "plate.png", plan, vertices, f"{region.name}: {len(plan.screws)} holes, "

@@ -35,8 +35,10 @@ from bonecad.errors import InputError
 from bonecad.mesh.closest import TriangleLocator
 from bonecad.mesh.rays import ray_hits
 from bonecad.settings import PlateSettings
+from bonecad.splines.basis import design_matrix
+from bonecad.splines.lsq import least_squares
 from bonecad.splines.surface import BSplineSurface
-from bonecad.tspline_model.patch import Footprint
+from bonecad.tspline_model.patch import Footprint, PatchRegion
 
 #: Stations along the centre line and samples across it for the developed coordinates.
 _STATIONS = 241
@@ -76,13 +78,17 @@ class Screw:
 
 @dataclass(frozen=True)
 class PlatePlan:
-    """The planned plate (bone coordinates, mm): the footprint, the outline and centre line in its
+    """The planned plate (bone coordinates, mm): the footprint, the surface under the plate (the footprint,
+    or :func:`smoothed`, same parameters; the underside is its offset) and its knot spacing (mm; None: the
+    footprint itself), the outline and centre line in those
     parameters ((n, 2) u, v), the underside's offset (gap + seat) and the outward sign of S_u x S_v, the
     developed length, the holes' parameters, the screws, and the fit: signed distances (mm) from the
     underside's samples to the mesh (< 0: inside the bone)."""
 
     footprint: Footprint
     settings: PlateSettings
+    underside: BSplineSurface
+    smoothing_mm: float | None
     outline_uv: np.ndarray
     centre_uv: np.ndarray
     seat_mm: float
@@ -101,7 +107,7 @@ class PlatePlan:
 
     def centre_points(self, offset_mm: float = 0.0) -> np.ndarray:
         """(n, 3) the centre line, offset along the outward normal by ``offset_mm`` (mm)."""
-        return _offset_points(self.footprint.surface, self.centre_uv, offset_mm, self.outward)
+        return _offset_points(self.underside, self.centre_uv, offset_mm, self.outward)
 
     def fit_summary(self) -> dict:
         """Shares of the samples within gap + 0.5 / 1 / 2 mm, the largest distance and penetration (mm)."""
@@ -337,10 +343,47 @@ def _with_clearances(screws: list[Screw], settings: PlateSettings) -> tuple[Scre
     return tuple(done)
 
 
+def smoothed(surface: BSplineSurface, outline_uv: np.ndarray, dev: Developed, knot_mm: float) -> BSplineSurface:
+    """A cubic B-spline with knots about ``knot_mm`` apart (developed mm) fitted by least squares to
+    ``surface`` over the outline's parameter box (5 % wider), in the same parameters: the plate's underside
+    follows the bone's shape but not the bumps of a wrinkled MRI model, whose 3.5 mm offset (the plate's
+    top) left every hole drilled through JIA's tibia plate an invalid solid (the runner falls back to it)."""
+    u0, u1, v0, v1 = surface.bounds
+    (a0, b0), (a1, b1) = outline_uv.min(axis=0), outline_uv.max(axis=0)
+    du, dv = 0.05 * (a1 - a0), 0.05 * (b1 - b0)
+    a0, a1, b0, b1 = max(u0, a0 - du), min(u1, a1 + du), max(v0, b0 - dv), min(v1, b1 + dv)
+    across = float(np.max(np.interp(np.array([a1]), dev.u, dev.x[_STATIONS // 2])
+                          - np.interp(np.array([a0]), dev.u, dev.x[_STATIONS // 2])))
+    along = float(np.interp(b1, dev.v, dev.y) - np.interp(b0, dev.v, dev.y))
+    spans = [max(1, int(round(extent / knot_mm))) for extent in (across, along)]
+    knots = [np.concatenate([[lo] * 4, np.linspace(lo, hi, n + 1)[1:-1], [hi] * 4])
+             for (lo, hi), n in zip(((a0, a1), (b0, b1)), spans)]
+    u = np.linspace(a0, a1, 6 * spans[0] + 4)
+    v = np.linspace(b0, b1, 6 * spans[1] + 4)
+    uu, vv = np.meshgrid(u, v, indexing="ij")
+    points = surface.evaluate(uu.ravel(), vv.ravel()).points.reshape(len(u), len(v), 3)
+    bu = design_matrix(u, knots[0], 3, False, spans[0] + 3).toarray()
+    bv = design_matrix(v, knots[1], 3, False, spans[1] + 3).toarray()
+    rows = least_squares(bu, points.reshape(len(u), -1)).reshape(spans[0] + 3, len(v), 3)
+    poles = least_squares(bv, rows.transpose(1, 0, 2).reshape(len(v), -1)).reshape(spans[1] + 3, spans[0] + 3, 3)
+    return BSplineSurface(poles.transpose(1, 0, 2), knots[0], knots[1], region=surface.region,
+                          bounds=np.array([a0, a1, b0, b1]))
+
+
+def plate_face(region: PatchRegion, settings: PlateSettings) -> PatchRegion:
+    """The bone's face a plate on ``region`` may cover: the region's heights, and ``face_angle_deg`` about the
+    middle of its angles (the plate's centre line runs up that middle)."""
+    middle, half = 0.5 * sum(region.angle_deg), 0.5 * settings.face_angle_deg
+    return PatchRegion(region.name, region.height_mm, (middle - half, middle + half))
+
+
 def plan_plate(footprint: Footprint, vertices: np.ndarray, faces: np.ndarray, joint_heights_mm: tuple[float, float],
-               settings: PlateSettings, locator: TriangleLocator | None = None) -> PlatePlan:
-    """The plate on ``footprint`` against the bone mesh (``vertices``, ``faces``, bone coordinates, mm),
-    with the articular ends at ``joint_heights_mm`` (distal, proximal; mm along the frame's z)."""
+               settings: PlateSettings, locator: TriangleLocator | None = None, *,
+               smoothing_mm: float | None = None) -> PlatePlan:
+    """The plate on ``footprint`` (the face of :func:`plate_face`) against the bone mesh (``vertices``,
+    ``faces`` with outward normals, bone coordinates, mm), with the articular ends at ``joint_heights_mm``
+    (distal, proximal; mm along the frame's z). The underside is the footprint's offset, or with
+    ``smoothing_mm`` that of its :func:`smoothed` surface with knots so far apart."""
     surface = footprint.surface
     name = footprint.region.name
     outward = outward_sign(surface)
@@ -358,9 +401,9 @@ def plan_plate(footprint: Footprint, vertices: np.ndarray, faces: np.ndarray, jo
     if short[k] > 0:
         height = float(np.interp(ys[k], dev.y, dev.heights))
         raise InputError(f"the plate ({2 * (need[k] - _SIDE_MARGIN_MM):.1f} mm wide) is wider than the bone's face "
-                         f"in region {name!r} at {height:.1f} mm height: the face reaches {below[k]:.1f} and "
-                         f"{above[k]:.1f} mm either side of its middle, {short[k]:.1f} mm short of the half width "
-                         f"plus {_SIDE_MARGIN_MM} mm")
+                         f"in region {name!r} at {height:.1f} mm height: the face ({settings.face_angle_deg:g} deg "
+                         f"round the bone) reaches {below[k]:.1f} and {above[k]:.1f} mm either side of the centre "
+                         f"line, {short[k]:.1f} mm short of the half width plus {_SIDE_MARGIN_MM} mm")
     outline = dev.to_uv(outline_xy(settings, y0, y1))
     centre = dev.to_uv(np.column_stack([np.zeros(len(ys) + 2), np.concatenate([[y0], ys, [y1]])]))
     # fit samples inside the outline; the seat lifts the underside out of the mesh
@@ -370,7 +413,8 @@ def plan_plate(footprint: Footprint, vertices: np.ndarray, faces: np.ndarray, jo
     xy = np.column_stack([gx.ravel(), gy.ravel()])
     xy = np.concatenate([xy[inside_outline(settings, xy, y0, y1)], outline_xy(settings, y0, y1)])
     uv = dev.to_uv(xy)
-    points, normal, _, _ = _frames(surface, uv, outward)
+    underside = surface if smoothing_mm is None else smoothed(surface, outline, dev, smoothing_mm)
+    points, normal, _, _ = _frames(underside, uv, outward)
     locator = locator or TriangleLocator(vertices, faces)
     gap = settings.gap_mm
     seat = max(0.0, float(gap - signed_distances(locator, points + gap * normal).min()))
@@ -380,10 +424,10 @@ def plan_plate(footprint: Footprint, vertices: np.ndarray, faces: np.ndarray, jo
     hole_y = hole_positions(settings, y0, y1)
     hole_xy = np.column_stack([np.zeros_like(hole_y), hole_y])
     hole_uv = dev.to_uv(hole_xy)
-    h_points, h_normal, _, h_along = _frames(surface, hole_uv, outward)
+    h_points, h_normal, _, h_along = _frames(underside, hole_uv, outward)
     directions = _screw_directions(settings, h_normal, h_along)
     undersides = h_points + (gap + seat) * h_normal
     screws = [_place_screw(i + 1, undersides[i], directions[i], h_normal[i], vertices, faces, settings,
                            joint_heights_mm) for i in range(len(hole_y))]
-    return PlatePlan(footprint, settings, outline, centre, seat, outward, y1 - y0, hole_uv,
+    return PlatePlan(footprint, settings, underside, smoothing_mm, outline, centre, seat, outward, y1 - y0, hole_uv,
                      _with_clearances(screws, settings), fit_points, fit, joint_heights_mm)
