@@ -333,8 +333,8 @@ class PlateSettings:
                     "end_radius_mm": self.end_radius_mm, "hole_spacing_mm": self.hole_spacing_mm,
                     "hole_diameter_mm": self.hole_diameter_mm, "screw_diameter_mm": self.screw_diameter_mm,
                     "max_screw_length_mm": self.max_screw_length_mm, "stock_step_mm": self.stock_step_mm,
-                    "fit_sample_mm": self.fit_sample_mm, "underside_smoothing_mm": min(self.underside_smoothing_mm, default=1.0),
-                    "density_g_cm3": self.density_g_cm3}
+                    "fit_sample_mm": self.fit_sample_mm, "density_g_cm3": self.density_g_cm3,
+                    "underside_smoothing_mm": min(self.underside_smoothing_mm, default=1.0)}
         bad = [k for k, v in positive.items() if not v > 0]
         if bad:
             raise ValueError(f"{bad} must be > 0")
