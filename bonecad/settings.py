@@ -306,7 +306,8 @@ class PlateSettings:
     radius, end inset and the knot spacings of a smoothed underside tried in turn where the exact one gives no
     valid solid (mm); its holes (count, 0 = by spacing; spacing, end distance, diameter, mm); the
     screws (diameter, per-hole tilts [along, across] in degrees, maximum and stock step of their length,
-    mm); the joint margin (mm), the fit's sample spacing (mm) and the material's density (g/cm^3)."""
+    mm); the joint margin (mm), the fit's sample spacing (mm), the material's density (g/cm^3), and on a
+    reduced fracture the screws each main fragment needs and how far (mm) screws keep from a fracture line."""
 
     width_mm: tuple[float, float]
     face_angle_deg: float
@@ -327,6 +328,8 @@ class PlateSettings:
     joint_margin_mm: float
     fit_sample_mm: float
     density_g_cm3: float
+    screws_per_fragment: int
+    fracture_margin_mm: float
 
     def __post_init__(self) -> None:
         positive = {"width_mm": min(self.width_mm), "thickness_mm": self.thickness_mm,

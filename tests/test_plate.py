@@ -222,3 +222,36 @@ def test_real_femur_plate(real_femur_run, tmp_path):
     out = tmp_path / "femur"
     _plate(real_femur_run, out, "--region", "lateral_distal_femur", "--screw-direction", "transverse")
     check_plate(out, real_femur_run, ICL_FEMUR, joints_clear=True)
+
+
+@pytest.mark.slow
+def test_plate_straight_from_a_mesh(real_tibia_run, tmp_path):
+    """One command from a mesh file (the T-spline fitted on the way) gives the plate the reconstruction's
+    folder gives, within the fit's repeatability."""
+    out = tmp_path / "from_mesh"
+    doc = _plate(SMALL_REAL_TIBIA, out, "--region", "anteromedial_distal_tibia", "--screw-direction", "transverse")
+    check_plate(out, real_tibia_run, SMALL_REAL_TIBIA, joints_clear=True)
+    folder = _plate(real_tibia_run, tmp_path / "from_folder", "--region", "anteromedial_distal_tibia",
+                    "--screw-direction", "transverse")
+    assert doc["plate"]["volume_mm3"] == pytest.approx(folder["plate"]["volume_mm3"], rel=0.02)
+    assert [s["stock_mm"] for s in doc["screws"]] == pytest.approx([s["stock_mm"] for s in folder["screws"]],
+                                                                   abs=2.0)
+
+
+def test_fracture_screws_hold_each_fragment_and_keep_off_the_fracture(phantom_run, tmp_path):
+    """A reduction's two fragments meeting at 45 mm: the hole within 10 mm of the line stays empty, each
+    fragment keeps two screws, the working length spans the empty hole; asking three per fragment exits 2."""
+    reduction = tmp_path / "reduce"
+    reduction.mkdir()
+    (reduction / "reduction.json").write_text(json.dumps(
+        {"fragments": [{"name": "distal", "height_mm": [-20, 45]}, {"name": "proximal", "height_mm": [45, 400]}]}))
+    doc = _plate(phantom_run, tmp_path / "fixed", "--region", "anteromedial_distal_tibia", "--fracture",
+                 str(reduction))
+    fracture = doc["fracture"]
+    assert fracture["fragment_screws"] == {"distal": [1, 2], "proximal": [4, 5]} and fracture["empty_holes"] == [3]
+    assert [s["hole"] for s in doc["screws"]] == [1, 2, 4, 5] and doc["plate"]["holes"] == 5
+    assert fracture["working_lengths_mm"][0]["working_length_mm"] == pytest.approx(
+        2 * doc["design"]["hole_spacing_mm"], abs=0.01)
+    assert main(["plate", str(phantom_run), "--region", "anteromedial_distal_tibia", "--out",
+                 str(tmp_path / "short"), "--fracture", str(reduction), "--screws-per-fragment", "3", "-q"]) == 2
+    assert not (tmp_path / "short").exists()

@@ -15,14 +15,15 @@ from bonecad.export.documents import write_json
 from bonecad.export.registry import exporter
 from bonecad.staging import staged_file
 from bonecad.tspline_model.patch import PatchRegion
-from bonecad.tspline_model.plate import PlatePlan, Screw
+from bonecad.tspline_model.plate import Fixation, PlatePlan, Screw
 
 
 @dataclass(frozen=True)
 class PlateDocument:
     """``bonecad plate``'s result: the region asked for, the plan (bone coordinates; its footprint is the face
     about the region's middle angle), the frame's axes (3, 3) and origin (3,) that map it to scanner
-    coordinates, the OpenCascade solid and its check (solids, valid, volume_mm3), and the stage times (s)."""
+    coordinates, the OpenCascade solid and its check (solids, valid, volume_mm3), the stage times (s), and on a
+    fracture the fixation (its screws are the plan's)."""
 
     region: PatchRegion
     plan: PlatePlan
@@ -31,6 +32,7 @@ class PlateDocument:
     solid: Any
     check: dict
     seconds: dict
+    fixation: Fixation | None = None
 
     def point(self, p: np.ndarray) -> np.ndarray:
         return np.asarray(p) @ self.axes + self.origin
@@ -81,7 +83,7 @@ def plate_json(doc: PlateDocument, out_dir: Path) -> Path:
         "design": dataclasses.asdict(plan.settings),
         "plate": {**doc.check, "mass_g": round(doc.mass_g, 3), "length_mm": round(plan.length_mm, 3),
                   "underside_offset_mm": round(plan.offset_mm, 4), "underside_smoothing_mm": plan.smoothing_mm,
-                  "holes": len(plan.screws)},
+                  "holes": len(plan.hole_y)},
         "fit": plan.fit_summary(),
         "joints": {"distal_apex_height_mm": round(plan.joint_heights_mm[0], 3),
                    "proximal_apex_height_mm": round(plan.joint_heights_mm[1], 3)},
@@ -89,6 +91,8 @@ def plate_json(doc: PlateDocument, out_dir: Path) -> Path:
         "failing_screws": doc.failing,
         "seconds": {k: round(v, 3) for k, v in doc.seconds.items()},
     }
+    if doc.fixation is not None:
+        data["fracture"] = doc.fixation.summary()
     return write_json(data, out_dir / "plate.json")
 
 

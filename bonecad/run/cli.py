@@ -167,11 +167,15 @@ def build_parser() -> argparse.ArgumentParser:
                        ("hole-diameter", "hole diameter (mm)"), ("screw-diameter", "screw diameter (mm)"),
                        ("max-screw-length", "longest screw (mm)"), ("stock-step", "stock length step (mm)"),
                        ("joint-margin", "no screw exit this close to an articular end (mm)"),
-                       ("density", "material density (g/cm^3) for the mass")):
+                       ("density", "material density (g/cm^3) for the mass"),
+                       ("fracture-margin", "with --fracture: no screw this close to a fracture line (mm)")):
         p.add_argument(f"--{flag}", type=float, help=what)
     p.add_argument("--holes", type=int, help="number of holes (0: as many as the spacing allows)")
+    p.add_argument("--screws-per-fragment", type=int, help="with --fracture: the screws each main fragment needs")
     p.add_argument("--screw-direction", choices=["normal", "transverse"],
                    help="screws along the bone's normal, or that normal across the frame's axis")
+    p.add_argument("--fracture", type=Path, help="a `bonecad reduce` folder (its reduction.json): screws on each "
+                   "main fragment, none near a fracture line, the working length reported")
     p.add_argument("--screw-angle", type=float, nargs=2, action="append", metavar=("ALONG", "ACROSS"),
                    help="one per hole, in order: the screw's tilt from the bone's normal (degrees) along the plate "
                    "(towards its proximal end) and across it")
@@ -334,7 +338,8 @@ def _plate_flags(args: argparse.Namespace) -> dict:
              "max_screw_length", "stock_step", "joint_margin")
     flags = {f"{name}_mm": getattr(args, name) for name in names}
     return {**flags, "width_mm": width, "holes": args.holes, "screw_direction": args.screw_direction,
-            "screw_angles_deg": args.screw_angle, "density_g_cm3": args.density}
+            "screw_angles_deg": args.screw_angle, "density_g_cm3": args.density,
+            "screws_per_fragment": args.screws_per_fragment, "fracture_margin_mm": args.fracture_margin}
 
 
 def settings_of(args: argparse.Namespace):
@@ -402,7 +407,8 @@ def _run(args: argparse.Namespace) -> int:
               f"blank {'valid' if doc.plate_blank['valid'] else 'INVALID'}; written to {args.out}")
     elif args.command == "plate":
         region = pipeline.patch_region(settings, args.region, args.height, args.angle)
-        plate = pipeline.run_plate(args.source, args.out, settings, region, mesh=args.mesh, units=args.units)
+        plate = pipeline.run_plate(args.source, args.out, settings, region, mesh=args.mesh, units=args.units,
+                                   fracture=args.fracture)
         fit = plate.plan.fit_summary()
         print(f"{region.name}: plate {plate.plan.length_mm:.1f} mm long, "
               f"{'valid' if plate.check['valid'] else 'INVALID'} solid, {plate.check['volume_mm3'] / 1000:.2f} cm^3 "

@@ -622,13 +622,39 @@ def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, regio
     return doc
 
 
+def read_reduction(path: Path):
+    """The main fragments and fracture heights of a ``bonecad reduce`` folder's reduction.json (or that file):
+    ``{"fragments": [{"name": str, "height_mm": [from, to]}, ...], "fracture_heights_mm": [h, ...]}``, heights
+    along the frame's axis in mm above its origin; without fracture_heights_mm, the middles between
+    consecutive fragments."""
+    import json
+
+    from bonecad.tspline_model.plate import Fragment
+
+    file = path / "reduction.json" if path.is_dir() else path
+    try:
+        data = json.loads(file.read_text())
+        fragments = tuple(Fragment(str(f["name"]), (float(f["height_mm"][0]), float(f["height_mm"][1])))
+                          for f in data["fragments"])
+        ordered = sorted(fragments, key=lambda f: f.height_mm[0])
+        lines = data.get("fracture_heights_mm") or [0.5 * (a.height_mm[1] + b.height_mm[0])
+                                                    for a, b in zip(ordered, ordered[1:])]
+        heights = tuple(float(h) for h in lines)
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise InputError(f"not a reduction (reduction.json with fragments and their height_mm): {exc}", file) from exc
+    if len(fragments) < 2:
+        raise InputError(f"a fracture needs two main fragments or more, the reduction lists {len(fragments)}", file)
+    return fragments, heights
+
+
 def run_plate(source: str | Path, out_dir: str | Path, settings: Settings, region, *, mesh: Path | None = None,
-              units: Units = "auto"):
+              units: Units = "auto", fracture: Path | None = None):
     """``bonecad plate``: a fixation plate on ``region`` of the bone's T-spline surface, its screws and fit.
 
     source : a reconstruction's output folder or an input (mesh file or CT volume), as for ``run_patch``.
     Writes plate.step/.iges/.stl, plate_curves.step, screws.csv, plate.json and plate.png into ``out_dir``
-    (all or nothing); returns the PlateDocument.
+    (all or nothing); returns the PlateDocument. ``fracture``: a reduction (:func:`read_reduction`) whose
+    fragments the screws must hold (the plate keeps every hole; screws near a fracture line are left out).
     """
     from bonecad.export.plate import PlateDocument
     from bonecad.occ.plate import check_plate, plate_solid
@@ -636,7 +662,7 @@ def run_plate(source: str | Path, out_dir: str | Path, settings: Settings, regio
     from bonecad.tspline_model.patch import footprint_patch
     from bonecad.errors import KernelError
     from bonecad.mesh.closest import TriangleLocator
-    from bonecad.tspline_model.plate import plan_plate, plate_face
+    from bonecad.tspline_model.plate import fixation, plan_plate, plate_face
 
     timings = Timings()
     with timings.stage("model"):
@@ -666,7 +692,12 @@ def run_plate(source: str | Path, out_dir: str | Path, settings: Settings, regio
         raise KernelError("no valid plate solid on the exact or any smoothed underside ([plate] "
                           "underside_smoothing_mm)")
     check = check_plate(solid)
-    doc = PlateDocument(region, plan, axes, origin, solid, check, dict(timings.seconds))
+    fixed = None
+    if fracture is not None:
+        fragments, lines = read_reduction(Path(fracture))
+        fixed = fixation(plan, fragments, lines, settings.plate.screws_per_fragment, settings.plate.fracture_margin_mm)
+        plan = replace(plan, screws=fixed.screws)
+    doc = PlateDocument(region, plan, axes, origin, solid, check, dict(timings.seconds), fixed)
     with staged_output(Path(out_dir)) as stage_dir:
         export("plate", doc, stage_dir)
         plate_png(stage_dir / "plate.png", plan, vertices, f"{region.name}: {len(plan.screws)} holes, "

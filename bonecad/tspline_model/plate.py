@@ -95,6 +95,7 @@ class PlatePlan:
     outward: float
     length_mm: float
     hole_uv: np.ndarray
+    hole_y: np.ndarray
     screws: tuple[Screw, ...]
     fit_points: np.ndarray
     fit_distance_mm: np.ndarray
@@ -430,4 +431,58 @@ def plan_plate(footprint: Footprint, vertices: np.ndarray, faces: np.ndarray, jo
     screws = [_place_screw(i + 1, undersides[i], directions[i], h_normal[i], vertices, faces, settings,
                            joint_heights_mm) for i in range(len(hole_y))]
     return PlatePlan(footprint, settings, underside, smoothing_mm, outline, centre, seat, outward, y1 - y0, hole_uv,
+                     hole_y,
                      _with_clearances(screws, settings), fit_points, fit, joint_heights_mm)
+
+
+@dataclass(frozen=True)
+class Fragment:
+    """A main fragment of a reduced fracture: its name and the heights it spans along the frame's axis (mm)."""
+
+    name: str
+    height_mm: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Fixation:
+    """A plate across a fracture: the screws placed (holes within the fracture margin left empty), the empty
+    holes, each fragment's screws (holes), and per fracture line its height and working length (mm along
+    the plate between the nearest screws either side; None where a side has none)."""
+
+    screws: tuple[Screw, ...]
+    empty_holes: tuple[int, ...]
+    fragment_screws: dict
+    working_lengths_mm: tuple[tuple[float, float | None], ...]
+
+    def summary(self) -> dict:
+        return {"empty_holes": list(self.empty_holes), "fragment_screws": self.fragment_screws,
+                "working_lengths_mm": [{"fracture_height_mm": round(h, 3),
+                                        "working_length_mm": None if w is None else round(w, 3)}
+                                       for h, w in self.working_lengths_mm]}
+
+
+def fixation(plan: PlatePlan, fragments: tuple[Fragment, ...], fracture_heights_mm: tuple[float, ...],
+             screws_per_fragment: int, margin_mm: float) -> Fixation:
+    """The plate's screws on a reduced fracture: none whose hole lies within ``margin_mm`` (along the bone's
+    axis) of a fracture height, at least ``screws_per_fragment`` in each fragment (by the hole's height);
+    InputError naming the fragment that gets fewer."""
+    heights = np.array([s.underside[2] for s in plan.screws])
+    near = np.array([any(abs(h - f) < margin_mm for f in fracture_heights_mm) for h in heights], dtype=bool)
+    kept = tuple(s for s, n in zip(plan.screws, near) if not n)
+    per_fragment = {}
+    for fragment in fragments:
+        lo, hi = fragment.height_mm
+        holes = [s.hole for s, n, h in zip(plan.screws, near, heights) if not n and lo <= h <= hi]
+        if len(holes) < screws_per_fragment:
+            raise InputError(f"fragment {fragment.name!r} ({lo:g} to {hi:g} mm) gets {len(holes)} screws, "
+                             f"{screws_per_fragment - len(holes)} short of screws_per_fragment {screws_per_fragment} "
+                             f"(no screw within fracture_margin_mm {margin_mm:g} of a fracture line): lengthen the "
+                             "plate or add holes")
+        per_fragment[fragment.name] = holes
+    working = []
+    for fracture in fracture_heights_mm:
+        below = [plan.hole_y[s.hole - 1] for s, h in zip(kept, (s.underside[2] for s in kept)) if h < fracture]
+        above = [plan.hole_y[s.hole - 1] for s, h in zip(kept, (s.underside[2] for s in kept)) if h > fracture]
+        span = float(min(above) - max(below)) if below and above else None
+        working.append((float(fracture), span))
+    return Fixation(kept, tuple(s.hole for s, n in zip(plan.screws, near) if n), per_fragment, tuple(working))
