@@ -150,7 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "region's centre line with the width either side and rounded ends, holes along the screw "
                        "axes; the screws' bicortical lengths (rounded up to stock), their checks and the plate's "
                        "fit. Writes plate.step, plate.iges, plate.stl, plate_curves.step, screws.csv, plate.json "
-                       "and plate.png into --out ([plate] settings; the flags override them).")
+                       "and plate.png into --out ([plate] settings; the flags override them).",
+                       epilog="example: bonecad plate out --region anteromedial_distal_tibia --screw-direction "
+                       "transverse --out plate-out")
     p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--region", help="a named region on the bone: " + "; ".join(
