@@ -303,6 +303,62 @@ class PatchSettings:
 
 
 @dataclass(frozen=True)
+class PlateSettings:
+    """``bonecad plate``: the plate's width (distal, proximal end), the bone's face it may cover (degrees
+    round the bone about the region's middle angle), thickness, gap to the bone, end corner
+    radius, end inset and the knot spacings of a smoothed underside tried in turn where the exact one gives no
+    valid solid (mm); its holes (count, 0 = by spacing; spacing, end distance, diameter, mm); the
+    screws (diameter, per-hole tilts [along, across] in degrees, maximum and stock step of their length,
+    mm); the joint margin (mm), the fit's sample spacing (mm), the material's density (g/cm^3), and on a
+    reduced fracture the screws each main fragment needs and how far (mm) screws keep from a fracture line."""
+
+    width_mm: tuple[float, float]
+    face_angle_deg: float
+    thickness_mm: float
+    gap_mm: float
+    end_radius_mm: float
+    end_inset_mm: float
+    underside_smoothing_mm: tuple[float, ...]
+    holes: int
+    hole_spacing_mm: float
+    hole_end_distance_mm: float
+    hole_diameter_mm: float
+    screw_diameter_mm: float
+    screw_direction: Literal["normal", "transverse"]
+    screw_angles_deg: tuple[tuple[float, float], ...]
+    max_screw_length_mm: float
+    stock_step_mm: float
+    joint_margin_mm: float
+    fit_sample_mm: float
+    density_g_cm3: float
+    screws_per_fragment: int
+    fracture_margin_mm: float
+
+    def __post_init__(self) -> None:
+        positive = {"width_mm": min(self.width_mm), "thickness_mm": self.thickness_mm,
+                    "end_radius_mm": self.end_radius_mm, "hole_spacing_mm": self.hole_spacing_mm,
+                    "hole_diameter_mm": self.hole_diameter_mm, "screw_diameter_mm": self.screw_diameter_mm,
+                    "max_screw_length_mm": self.max_screw_length_mm, "stock_step_mm": self.stock_step_mm,
+                    "fit_sample_mm": self.fit_sample_mm, "density_g_cm3": self.density_g_cm3,
+                    "underside_smoothing_mm": min(self.underside_smoothing_mm, default=1.0)}
+        bad = [k for k, v in positive.items() if not v > 0]
+        if bad:
+            raise ValueError(f"{bad} must be > 0")
+        if not 0 < self.face_angle_deg < 360:
+            raise ValueError(f"face_angle_deg {self.face_angle_deg} must lie between 0 and 360")
+        if self.gap_mm < 0 or self.holes < 0 or self.end_inset_mm < 0 or self.joint_margin_mm < 0:
+            raise ValueError("gap_mm, holes, end_inset_mm and joint_margin_mm must be >= 0")
+        if 2 * self.end_radius_mm > min(self.width_mm) + 1e-9:
+            raise ValueError(f"end_radius_mm {self.end_radius_mm} is more than half the width {min(self.width_mm)}")
+        if self.hole_diameter_mm >= min(self.width_mm):
+            raise ValueError(f"hole_diameter_mm {self.hole_diameter_mm} leaves no plate either side "
+                             f"(width {min(self.width_mm)} mm)")
+        if self.screw_diameter_mm > self.hole_diameter_mm:
+            raise ValueError(f"screw_diameter_mm {self.screw_diameter_mm} does not pass the "
+                             f"{self.hole_diameter_mm} mm hole")
+
+
+@dataclass(frozen=True)
 class PipelineSettings:
     """The runner: which models to build, whether independent stages run on the second core, which bone
     (a profile of data/bones, or "auto": recognised), whether a reconstruction's arrays may live on
@@ -346,6 +402,7 @@ class Settings:
     shape_model: ShapeModelSettings
     analysis: AnalysisSettings
     patch: PatchSettings
+    plate: PlateSettings
     pipeline: PipelineSettings
     cohort: CohortSettings
 

@@ -155,6 +155,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mesh", type=Path, help="the mesh of a reconstruction folder, if it has moved")
     _add_common(p)
 
+    p = sub.add_parser("plate", help="a fixation plate on a region of the bone -> plate.step/.iges/.stl, screws",
+                       description="Design a patient-specific fixation plate on a region of the bone's T-spline "
+                       "surface (as `patch`): its underside the surface offset by the gap, its outline the "
+                       "region's centre line with the width either side and rounded ends, holes along the screw "
+                       "axes; the screws' bicortical lengths (rounded up to stock), their checks and the plate's "
+                       "fit. Writes plate.step, plate.iges, plate.stl, plate_curves.step, screws.csv, plate.json "
+                       "and plate.png into --out ([plate] settings; the flags override them).",
+                       epilog="example: bonecad plate out --region anteromedial_distal_tibia --screw-direction "
+                       "transverse --out plate-out")
+    p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--region", help="a named region on the bone: " + "; ".join(
+        f"{b}: {', '.join(load_profile(b).patch_regions)}" for b in BONES))
+    p.add_argument("--height", type=float, nargs=2, metavar=("FROM", "TO"),
+                   help="heights, mm above the frame's origin (the plafond centre of a tibia)")
+    p.add_argument("--angle", type=float, nargs=2, metavar=("FROM", "TO"), help="angles, degrees from lateral")
+    p.add_argument("--mesh", type=Path, help="the mesh of a reconstruction folder, if it has moved")
+    p.add_argument("--width", type=float, nargs="+", metavar="MM",
+                   help="plate width (mm); two values: distal and proximal end (tapered)")
+    for flag, what in (("thickness", "plate thickness (mm)"), ("gap", "gap to the bone (mm, 0 = contact)"),
+                       ("end-radius", "radius of the end corners (mm; half the width: round ends)"),
+                       ("hole-spacing", "hole spacing (mm) when --holes is 0"),
+                       ("hole-diameter", "hole diameter (mm)"), ("screw-diameter", "screw diameter (mm)"),
+                       ("max-screw-length", "longest screw (mm)"), ("stock-step", "stock length step (mm)"),
+                       ("joint-margin", "no screw exit this close to an articular end (mm)"),
+                       ("density", "material density (g/cm^3) for the mass"),
+                       ("fracture-margin", "with --fracture: no screw this close to a fracture line (mm)")):
+        p.add_argument(f"--{flag}", type=float, help=what)
+    p.add_argument("--holes", type=int, help="number of holes (0: as many as the spacing allows)")
+    p.add_argument("--screws-per-fragment", type=int, help="with --fracture: the screws each main fragment needs")
+    p.add_argument("--screw-direction", choices=["normal", "transverse"],
+                   help="screws along the bone's normal, or that normal across the frame's axis")
+    p.add_argument("--fracture", type=Path, help="a `bonecad reduce` folder (its reduction.json): screws on each "
+                   "main fragment, none near a fracture line, the working length reported")
+    p.add_argument("--screw-angle", type=float, nargs=2, action="append", metavar=("ALONG", "ACROSS"),
+                   help="one per hole, in order: the screw's tilt from the bone's normal (degrees) along the plate "
+                   "(towards its proximal end) and across it")
+    _add_common(p)
+
     p = sub.add_parser("segment", help="CT volume -> tibia surface mesh",
                        description="Read a CT volume (DICOM folder, .nii/.nii.gz, .nrrd, .mha), segment the "
                        "tibia (cortical bone threshold, marrow filled, fibula/femur/talus separated) and write its "
@@ -309,6 +348,19 @@ def fit_progress(args: argparse.Namespace, max_rounds: int) -> Iterator[Callable
         yield update
 
 
+def _plate_flags(args: argparse.Namespace) -> dict:
+    """``bonecad plate``'s flags as [plate] settings (None: not given)."""
+    width = args.width if args.width is None or len(args.width) == 2 else args.width[:1] * 2
+    if args.width is not None and len(args.width) > 2:
+        raise InputError(f"--width takes one or two values (distal, proximal), got {len(args.width)}")
+    names = ("thickness", "gap", "end_radius", "hole_spacing", "hole_diameter", "screw_diameter",
+             "max_screw_length", "stock_step", "joint_margin")
+    flags = {f"{name}_mm": getattr(args, name) for name in names}
+    return {**flags, "width_mm": width, "holes": args.holes, "screw_direction": args.screw_direction,
+            "screw_angles_deg": args.screw_angle, "density_g_cm3": args.density,
+            "screws_per_fragment": args.screws_per_fragment, "fracture_margin_mm": args.fracture_margin}
+
+
 def settings_of(args: argparse.Namespace):
     """The run's settings: the defaults, the ``--config`` file, then each flag as an override of one setting."""
     from bonecad.settings import Settings
@@ -321,6 +373,7 @@ def settings_of(args: argparse.Namespace):
         "pipeline": {"models": None if getattr(args, "model", None) in (None, "both") else [args.model],
                      "bone": getattr(args, "bone", None)},
         "cohort": {"workers": getattr(args, "workers", None), "timeout_s": getattr(args, "timeout", None)},
+        "plate": _plate_flags(args) if getattr(args, "command", None) == "plate" else {},
     }
     if getattr(args, "model", None) == "both":
         flags["pipeline"]["models"] = ["nurbs", "tspline"]
@@ -371,6 +424,19 @@ def _run(args: argparse.Namespace) -> int:
               f"{fp.angle_span_deg[1]:.1f} deg; from the T-spline {fp.tspline_deviation_mm:.1e} mm, from the mesh "
               f"RMS {dev['rms_mm']:.3f} mm, max {dev['max_mm']:.3f} mm; {doc.plate_blank['thickness_mm']} mm plate "
               f"blank {'valid' if doc.plate_blank['valid'] else 'INVALID'}; written to {args.out}")
+    elif args.command == "plate":
+        region = pipeline.patch_region(settings, args.region, args.height, args.angle)
+        plate = pipeline.run_plate(args.source, args.out, settings, region, mesh=args.mesh, units=args.units,
+                                   fracture=args.fracture)
+        fit = plate.plan.fit_summary()
+        print(f"{region.name}: plate {plate.plan.length_mm:.1f} mm long, "
+              f"{'valid' if plate.check['valid'] else 'INVALID'} solid, {plate.check['volume_mm3'] / 1000:.2f} cm^3 "
+              f"({plate.mass_g:.1f} g); fit: {100 * fit['share_within_gap_plus_mm']['0.5']:.1f} % within gap + 0.5 mm, "
+              f"largest gap {fit['largest_gap_mm']:.2f} mm, seat {fit['seat_mm']:.2f} mm; screws "
+              f"{', '.join(f'{s.hole}: {s.stock_mm:g}' for s in plate.plan.screws)} mm; "
+              f"{len(plate.failing)} failing a check; written to {args.out}")
+        for failing in plate.failing:
+            print(f"  screw {failing['hole']}: {'; '.join(failing['why'])}")
     elif args.command == "segment":
         bone = pipeline.run_segment(args.ct, args.out, settings)
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")

@@ -572,6 +572,32 @@ def _check_region_on(bone: str, region, settings: Settings, source: Path) -> Non
                          "(or give --height and --angle)", source)
 
 
+def _surface_of(source: Path, settings: Settings, region, *, mesh: Path | None, units: Units):
+    """The tube (bone coordinates), the frame's axes and origin, the bone mesh, the bone's settings and the
+    heights (mm, bone coordinates) of the apices where the frame's axis leaves the bone (distal, proximal) of a
+    reconstruction's folder or an input, for which the T-spline is built; InputError if ``region`` is a
+    named region not on this bone."""
+    import json
+
+    from bonecad.tspline_model.model import build_tspline_model
+
+    if source.is_dir() and (source / "tspline.json").exists():
+        tube, axes, origin, bone, name = _model_folder(source, mesh, settings)
+        _check_region_on(name, region, settings, source)
+        apices = json.loads((source / "frame.json").read_text())["apices"]
+        ends = [np.asarray(apices[end], dtype=np.float64) for end in ("distal", "proximal")]
+        return tube, axes, origin, bone, settings, tuple(
+            float(((p - origin) @ axes.T)[2]) for p in ends)
+    bone = load_input(source, settings, units=units)
+    settings = bone_settings(bone, settings)
+    _check_region_on(settings.pipeline.bone, region, settings, source)
+    frame, contours, _ = frame_and_contours(bone, settings)
+    model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
+                                apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
+    joints = tuple(float(frame.to_bone(p[None])[0, 2]) for p in (frame.distal_apex, frame.proximal_apex))
+    return model.tspline, frame.axes, frame.origin, bone, settings, joints
+
+
 def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, region, *, mesh: Path | None = None,
               units: Units = "auto"):
     """``bonecad patch``: one region of the T-spline surface as one untrimmed B-spline face.
@@ -584,21 +610,9 @@ def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, regio
     from bonecad.occ.operations import solids, thicken
     from bonecad.occ.brep import is_valid, volume_mm3
     from bonecad.occ.surfaces import make_face
-    from bonecad.tspline_model.model import build_tspline_model
     from bonecad.tspline_model.patch import footprint_patch, mesh_deviation
 
-    source = Path(source)
-    if source.is_dir() and (source / "tspline.json").exists():
-        tube, axes, origin, bone, name = _model_folder(source, mesh, settings)
-        _check_region_on(name, region, settings, source)
-    else:
-        bone = load_input(source, settings, units=units)
-        settings = bone_settings(bone, settings)
-        _check_region_on(settings.pipeline.bone, region, settings, source)
-        frame, contours, _ = frame_and_contours(bone, settings)
-        model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
-                                    apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
-        tube, axes, origin = model.tspline, frame.axes, frame.origin
+    tube, axes, origin, bone, settings, _ = _surface_of(Path(source), settings, region, mesh=mesh, units=units)
     footprint = footprint_patch(tube, region)
     doc = PatchDocument(footprint, axes, origin, {}, {})
     deviation = mesh_deviation(doc.surface, bone.vertices, bone.faces, settings.patch.mesh_samples)
@@ -610,4 +624,87 @@ def run_patch(source: str | Path, out_dir: str | Path, settings: Settings, regio
     doc = replace(doc, mesh_deviation=deviation, plate_blank=plate)
     with staged_output(Path(out_dir)) as stage_dir:
         export("patch", doc, stage_dir)
+    return doc
+
+
+def read_reduction(path: Path):
+    """The main fragments and fracture heights of a ``bonecad reduce`` folder's reduction.json (or that file):
+    ``{"fragments": [{"name": str, "height_mm": [from, to]}, ...], "fracture_heights_mm": [h, ...]}``, heights
+    along the frame's axis in mm above its origin; without fracture_heights_mm, the middles between
+    consecutive fragments."""
+    import json
+
+    from bonecad.tspline_model.plate import Fragment
+
+    file = path / "reduction.json" if path.is_dir() else path
+    try:
+        data = json.loads(file.read_text())
+        fragments = tuple(Fragment(str(f["name"]), (float(f["height_mm"][0]), float(f["height_mm"][1])))
+                          for f in data["fragments"])
+        ordered = sorted(fragments, key=lambda f: f.height_mm[0])
+        lines = data.get("fracture_heights_mm") or [0.5 * (a.height_mm[1] + b.height_mm[0])
+                                                    for a, b in zip(ordered, ordered[1:])]
+        heights = tuple(float(h) for h in lines)
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise InputError(f"not a reduction (reduction.json with fragments and their height_mm): {exc}", file) from exc
+    if len(fragments) < 2:
+        raise InputError(f"a fracture needs two main fragments or more, the reduction lists {len(fragments)}", file)
+    return fragments, heights
+
+
+def run_plate(source: str | Path, out_dir: str | Path, settings: Settings, region, *, mesh: Path | None = None,
+              units: Units = "auto", fracture: Path | None = None):
+    """``bonecad plate``: a fixation plate on ``region`` of the bone's T-spline surface, its screws and fit.
+
+    source : a reconstruction's output folder or an input (mesh file or CT volume), as for ``run_patch``.
+    Writes plate.step/.iges/.stl, plate_curves.step, screws.csv, plate.json and plate.png into ``out_dir``
+    (all or nothing); returns the PlateDocument. ``fracture``: a reduction (:func:`read_reduction`) whose
+    fragments the screws must hold (the plate keeps every hole; screws near a fracture line are left out).
+    """
+    from bonecad.export.plate import PlateDocument
+    from bonecad.occ.plate import check_plate, plate_solid
+    from bonecad.render.plate import plate_png
+    from bonecad.tspline_model.patch import footprint_patch
+    from bonecad.errors import KernelError
+    from bonecad.mesh.closest import TriangleLocator
+    from bonecad.tspline_model.plate import fixation, plan_plate, plate_face
+
+    timings = Timings()
+    with timings.stage("model"):
+        tube, axes, origin, bone, settings, joints = _surface_of(Path(source), settings, region, mesh=mesh,
+                                                                 units=units)
+    with timings.stage("plan"):
+        footprint = footprint_patch(tube, plate_face(region, settings.plate))
+        vertices = (bone.vertices - origin) @ axes.T
+        faces = bone.faces[:, ::-1] if np.linalg.det(axes) < 0 else bone.faces  # outward in mirrored coordinates
+        locator = TriangleLocator(vertices, faces)
+    for smoothing in (None, *settings.plate.underside_smoothing_mm):  # the exact underside, then smoothed ones
+        with timings.stage("plan"):
+            plan = plan_plate(footprint, vertices, faces, joints, settings.plate, locator, smoothing_mm=smoothing)
+        with timings.stage("solid"):
+            # the underside's surface in scanner coordinates, its parameters kept (S_u x S_v turns with a mirror)
+            surface = replace(plan.underside, poles=plan.underside.poles @ axes + origin)
+            outward = plan.outward * float(np.sign(np.linalg.det(axes)))
+            holes = [(s.underside @ axes + origin, s.direction @ axes) for s in plan.screws]
+            try:
+                solid, _ = plate_solid(surface, plan.outline_uv, plan.offset_mm, outward,
+                                       settings.plate.thickness_mm, holes, settings.plate.hole_diameter_mm)
+                break
+            except KernelError as exc:
+                log.warning("the plate on %s: %s", "the exact underside" if smoothing is None
+                            else f"an underside smoothed at {smoothing:g} mm", exc)
+    else:
+        raise KernelError("no valid plate solid on the exact or any smoothed underside ([plate] "
+                          "underside_smoothing_mm)")
+    check = check_plate(solid)
+    fixed = None
+    if fracture is not None:
+        fragments, lines = read_reduction(Path(fracture))
+        fixed = fixation(plan, fragments, lines, settings.plate.screws_per_fragment, settings.plate.fracture_margin_mm)
+        plan = replace(plan, screws=fixed.screws)
+    doc = PlateDocument(region, plan, axes, origin, solid, check, dict(timings.seconds), fixed)
+    with staged_output(Path(out_dir)) as stage_dir:
+        export("plate", doc, stage_dir)
+        plate_png(stage_dir / "plate.png", plan, vertices, f"{region.name}: {len(plan.screws)} holes, "
+                  f"{settings.plate.thickness_mm:g} mm thick, gap {settings.plate.gap_mm:g} mm")
     return doc
