@@ -97,6 +97,7 @@ class Reduction:
     template: Template
     fracture_levels_mm: tuple[tuple[float, float, float], ...]
     up: np.ndarray
+    template_to_input: np.ndarray
     notes: tuple[str, ...] = field(default=())
 
     def reduced_meshes(self, bodies: list[FragmentBody]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -386,7 +387,7 @@ def reduce_fragments(bodies: list[FragmentBody], template: Template, settings: F
             contacts=tuple(contacts[i]), poor=poor))
     notes.append(f"length, axis alignment and torsion come from the template ({template.kind}: {template.source}); "
                  f"expected uncertainty {template.uncertainty_mm:g} mm, {template.uncertainty_deg:g} degrees")
-    return Reduction(tuple(fragments), template, tuple(levels), up, tuple(notes))
+    return Reduction(tuple(fragments), template, tuple(levels), up, anchor, tuple(notes))
 
 
 def _intermediate_starts(centre: np.ndarray, target: _Target, mains: list[np.ndarray], settings: FractureSettings
@@ -505,3 +506,20 @@ def ideal_placement(intact: list[tuple[np.ndarray, np.ndarray, np.ndarray]], tem
         samples = _sample(v, f[~fr], settings.fragment_spacing_mm, seed=i, most=settings.fragment_points)
         out.append(_icp(samples, target, start, settings).transform)
     return out
+
+
+def template_fit_rms(bodies: list[FragmentBody], vertices: np.ndarray, faces: np.ndarray,
+                     settings: FractureSettings, *, bone: str = "tibia") -> float:
+    """The proximal fragment's registration RMS (mm) onto a candidate template (the same steps as
+    ``reduce_fragments``): how well the template's shape fits the fragments, to tell a template of the same side
+    left unmirrored (it fits the mirrored one far better) or of another bone (it fits neither)."""
+    roles = [b.role for b in bodies]
+    p, d = roles.index("proximal"), roles.index("distal")
+    target = _target(vertices, faces, settings.template_spacing_mm, bone)
+    samples = _sample(bodies[p].vertices, bodies[p].faces, settings.fragment_spacing_mm,
+                      most=settings.fragment_points)
+    outward = _outward_axis(samples.points, bodies[d].vertices.mean(axis=0))
+    starts = _main_starts(samples, outward, target, True, settings.start_turns,
+                          settings.end_band_share * target.frame.length)
+    fit, _, _ = _registered(bodies[p], samples, target, starts, outward, settings)
+    return fit.rms
