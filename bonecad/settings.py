@@ -356,6 +356,7 @@ class FractureSettings:
     same_side_rms_ratio: float
     contralateral_uncertainty_mm: float
     contralateral_uncertainty_deg: float
+    exclusion_mm: float
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Broken bones (issue 42): the fracture generator, fragment recognition, reduction onto a template, `bonecad reduce`."""
+"""Broken bones (issue 42): the fracture generator, fragment recognition, reduction onto a template, the CLI."""
 from __future__ import annotations
 
 import json

@@ -29,6 +29,8 @@ from bonecad.imaging.fracture import AxialFrame, apply, axial_frame
 from bonecad.settings import FractureSettings
 
 MAIN_ROLES = ("proximal", "distal")
+#: fragments whose fracture surfaces come this near (mm) after reduction are neighbours (their gap reported)
+NEIGHBOUR_REACH_MM = 10.0
 
 
 @dataclass(frozen=True)
@@ -443,8 +445,8 @@ def _refined_together(transforms: list[np.ndarray], periosteal: list[_Samples], 
 def _contacts(meshes: list[tuple[np.ndarray, np.ndarray]], samples: list[_Samples], fracture: list[_Samples],
               up: np.ndarray, bottom: float, settings: FractureSettings
               ) -> tuple[list[list[Contact]], list[tuple[float, float, float]]]:
-    """Each reduced fragment's contacts with the others (those its fracture surface comes within ``contact_mm``
-    of: exact signed distances to their meshes), and each touching pair's fracture level (mm from the distal
+    """Each reduced fragment's contacts with the others (those its fracture surface comes within
+    ``NEIGHBOUR_REACH_MM`` of: exact signed distances to their meshes), and each touching pair's fracture level (mm from the distal
     end: lowest, highest, mean of the fracture surface facing the other)."""
     import igl
 
@@ -456,7 +458,7 @@ def _contacts(meshes: list[tuple[np.ndarray, np.ndarray]], samples: list[_Sample
                 continue
             mesh = (np.ascontiguousarray(vertices, dtype=np.float64), np.ascontiguousarray(faces, dtype=np.int64))
             signed = igl.signed_distance(own.points, *mesh)[0]
-            facing = np.abs(signed) < settings.contact_mm
+            facing = np.abs(signed) < max(settings.contact_mm, NEIGHBOUR_REACH_MM)
             if facing.sum() < max(12, 0.05 * len(own.points)):
                 continue
             depth = -igl.signed_distance(samples[i].points, *mesh)[0]

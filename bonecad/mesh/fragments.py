@@ -114,7 +114,8 @@ def load_broken_bone(path: str | Path, *, units: Units = "auto", settings: MeshS
             fragments.append(_named(p, "intermediate"))
     return BrokenBone(tuple(fragments), tuple(neighbours),
                       tuple(f"{p.volume_mm3:.0f} mm3, {p.length_mm:.1f} mm" for p in specks), up,
-                      tuple(cleaned.repairs) + ((f"scaled by {scale:g} to mm (--units {units})",) if scale != 1 else ()),
+                      tuple(cleaned.repairs) + ((f"scaled by {scale:g} to mm (--units {units})",) if scale != 1
+                                                else ()),
                       str(source))
 
 

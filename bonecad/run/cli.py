@@ -127,6 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="NURBS apex holes: a ring of lines lofted flat, or a fill-hole patch (default from config)")
     p.add_argument("--compare-tensor-product", action="store_true", default=None,
                    help="also fit a tensor-product B-spline to the T-spline's tolerance and report its control points")
+    p.add_argument("--reduce", action="store_true", help="the input is a broken bone: reduce its fragments onto "
+                   "--template first (bonecad reduce), then model the reduced bone, its fracture surfaces left out")
+    p.add_argument("--template", nargs=2, metavar=("KIND", "PATH"), help="with --reduce: 'contralateral MESH'")
 
     p = sub.add_parser("reduce", help="broken bone: fragments moved onto a template -> reduced.stl, reduction.json",
                        description="Virtual fracture reduction: name the fragments of a broken tibia or femur (a mesh "
@@ -346,9 +349,17 @@ def _run(args: argparse.Namespace) -> int:
     elif args.command in ("frame", "curves", "reconstruct"):
         stage: dict[str, pipeline.Until] = {"frame": "frame", "curves": "curves", "reconstruct": "models"}
         until = stage[args.command]
+        if getattr(args, "reduce", False) != (getattr(args, "template", None) is not None):
+            raise InputError("--reduce and --template go together: --reduce --template contralateral MESH")
         with fit_progress(args, settings.tspline.max_rounds) as progress:
-            result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units,
-                                          progress=progress)
+            if getattr(args, "reduce", False):
+                from bonecad.run.fracture import reconstruct_reduced
+
+                result, _ = reconstruct_reduced(args.input, args.out, args.template[0], args.template[1], settings,
+                                                units=args.units, progress=progress)
+            else:
+                result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units,
+                                              progress=progress)
         _print_result(result)
         print(f"{result.frame.side} {result.frame.bone}; {len(result.files)} files written to {args.out} "
               f"({result.wall_s:.1f} s)")

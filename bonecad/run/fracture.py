@@ -131,12 +131,17 @@ def reduction_record(result: Reduced) -> dict:
 def run_reduce(source: str | Path, out_dir: str | Path, template_kind: str, template_path: str | Path,
                settings: Settings, *, units: Units = "auto") -> dict:
     """``bonecad reduce``: reduced.stl, reduction.json, reduction.png in ``out_dir``; returns the record."""
+    return run_reduce_files(reduce_fracture(source, template_kind, template_path, settings, units=units), out_dir)
+
+
+def run_reduce_files(result: Reduced, out_dir: str | Path) -> dict:
+    """Write a reduction's reduced.stl, reduction.json and reduction.png into ``out_dir`` (all or nothing)."""
     import trimesh
 
-    result = reduce_fracture(source, template_kind, template_path, settings, units=units)
     bodies = [FragmentBody(p.vertices, p.faces, p.role) for p in result.broken.fragments]
     reduced = result.reduction.reduced_meshes(bodies)
     record = reduction_record(result)
+    source = result.broken.source
     with staged_output(out_dir) as stage:
         offsets = np.cumsum([0] + [len(v) for v, _ in reduced[:-1]])
         mesh = trimesh.Trimesh(np.concatenate([v for v, _ in reduced]),
@@ -147,5 +152,83 @@ def run_reduce(source: str | Path, out_dir: str | Path, template_kind: str, temp
         template = result.reduction.template
         reduction_png(stage / "reduction.png", [(b.vertices, b.faces) for b in bodies], reduced, labels,
                       result.reduction.up,
-                      template=(apply(result.reduction.template_to_input, template.vertices), template.faces), title=f"{Path(source).name} reduced onto {result.reduction.template.source}")
+                      template=(apply(result.reduction.template_to_input, template.vertices), template.faces),
+                      title=f"{Path(source).name} reduced onto {template.source}")
     return record
+
+
+def reduced_solid(result: Reduced) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reduced bone as one closed body: the union of the reduced fragments (manifold3d), and where a gap
+    leaves them apart, the template's shape within 3 mm of the fracture lines bridging it. Returns vertices (mm),
+    faces and the centres (k, 3) of the faces that are not bone surface (fracture surfaces, the bridge)."""
+    import manifold3d
+
+    def solid(vertices: np.ndarray, faces: np.ndarray):
+        mesh = manifold3d.Mesh(vert_properties=np.asarray(vertices, dtype=np.float32),
+                               tri_verts=np.asarray(faces, dtype=np.uint32))
+        return manifold3d.Manifold(mesh).as_original()
+
+    bodies = [FragmentBody(p.vertices, p.faces, p.role) for p in result.broken.fragments]
+    reduced = result.reduction.reduced_meshes(bodies)
+    parts = [solid(v, f) for v, f in reduced]
+    fracture = {part.original_id(): f.fracture for part, f in zip(parts, result.reduction.fragments)}
+    union = manifold3d.Manifold.batch_boolean(parts, manifold3d.OpType.Add)
+    if len(union.decompose()) > 1 and any(r.fracture.any() for r in result.reduction.fragments):
+        template = result.reduction.template
+        placed = apply(result.reduction.template_to_input, template.vertices)
+        bridge = solid(placed, template.faces)
+        up = result.reduction.up
+        bottom = min(float((v @ up).min()) for v, _ in reduced)
+        cut = np.concatenate([v[f[r.fracture]].mean(axis=1) @ up for (v, f), r in zip(reduced, result.reduction.fragments)
+                              if r.fracture.any()]) - bottom
+        low, high = float(cut.min()) - 3.0, float(cut.max()) + 3.0
+        heights = placed @ up - bottom
+        keep = np.abs(heights - 0.5 * (low + high)) < 0.5 * (high - low) + 50.0
+        centre = placed[keep].mean(axis=0)
+        slab = manifold3d.Manifold.cylinder(high - low, 200.0, 200.0, 64).translate(
+            (0.0, 0.0, -0.5 * (high - low)))
+        rot = _rotation_to(up)
+        slab = slab.transform(np.column_stack([rot, centre + (bottom + 0.5 * (low + high) - centre @ up) * up]))
+        union = union + (bridge ^ slab)
+    mesh = union.to_mesh()
+    faces = np.asarray(mesh.tri_verts, dtype=np.int64)
+    vertices = np.asarray(mesh.vert_properties[:, :3], dtype=np.float64)
+    origin = np.repeat(np.asarray(mesh.run_original_id), np.diff(np.asarray(mesh.run_index)) // 3)
+    face_id = np.asarray(mesh.face_id, dtype=np.int64)
+    excluded = np.ones(len(faces), dtype=bool)
+    for oid, mask in fracture.items():
+        mine = origin == oid
+        excluded[mine] = mask[face_id[mine]]
+    return vertices, faces, vertices[faces[excluded]].mean(axis=1)
+
+
+def _rotation_to(up: np.ndarray) -> np.ndarray:
+    """3 x 3 rotation taking +z to the unit ``up``."""
+    z = np.array([0.0, 0.0, 1.0])
+    v, c = np.cross(z, up), float(z @ up)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k * (1.0 / (1.0 + c))
+
+
+def reconstruct_reduced(source: str | Path, out_dir: str | Path, template_kind: str, template_path: str | Path,
+                        settings: Settings, *, units: Units = "auto", progress=None):
+    """``bonecad reconstruct --reduce``: reduce the fragments, then model the reduced bone (the usual files in
+    ``out_dir``) with the fracture surfaces and the template's bridge left out of the T-spline fit and of the
+    deviation (``BoneMesh.extra["excluded_centres"]``); the reduction's own files go to ``out_dir/reduction``."""
+    from dataclasses import replace
+
+    from bonecad.mesh.intake import prepare_bone
+    from bonecad.run.pipeline import reconstruct_bone
+
+    result = reduce_fracture(source, template_kind, template_path, settings, units=units)
+    vertices, faces, excluded = reduced_solid(result)
+    bone = prepare_bone(vertices, faces, source=source, settings=settings.mesh, plausible=settings.units,
+                        keep="femur" if result.bone == "femur" else "tibia")
+    bone = replace(bone, extra={**bone.extra, "excluded_centres": excluded,
+                                "excluded_mm": settings.fracture.exclusion_mm})
+    settings = settings.replace("pipeline", bone=result.bone)
+    reconstruction = reconstruct_bone(bone, out_dir, settings, progress=progress)
+    run_reduce_files(result, Path(out_dir) / "reduction")
+    return reconstruction, result
