@@ -16,6 +16,7 @@ from bonecad.analysis.deviation import DeviationResult, shape_deviation
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.mesh.closest import TriangleLocator
 from bonecad.analysis.continuity import (ContinuityTolerances, KnotContinuity, SeamContinuity, knot_continuity,
                                          seam_continuity)
 from bonecad.mesh.tessellation import Tessellation, TessellationSettings
@@ -85,7 +86,8 @@ def model_deviation(tess: Tessellation, bone: BoneMesh, frame: AnatomicalFrame,
                     settings: AnalysisSettings) -> DeviationResult:
     """Signed deviation between the bone mesh (the full mesh) and the model, both ways, overall and per region;
     the colour map's at the vertices of its working copy (``BoneMesh.work``)."""
-    faces, locator = bone.faces, bone.locator
+    faces = bone.faces
+    locator: TriangleLocator | None = bone.locator
     if bone.extra.get("excluded_centres") is not None:  # a reduced fracture: its fracture surfaces are not bone
         from scipy.spatial import cKDTree
 

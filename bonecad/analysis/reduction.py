@@ -446,8 +446,8 @@ def _contacts(meshes: list[tuple[np.ndarray, np.ndarray]], samples: list[_Sample
               up: np.ndarray, bottom: float, settings: FractureSettings
               ) -> tuple[list[list[Contact]], list[tuple[float, float, float]]]:
     """Each reduced fragment's contacts with the others (those its fracture surface comes within
-    ``NEIGHBOUR_REACH_MM`` of: exact signed distances to their meshes), and each touching pair's fracture level (mm from the distal
-    end: lowest, highest, mean of the fracture surface facing the other)."""
+    ``NEIGHBOUR_REACH_MM`` of: exact signed distances to their meshes), and each touching pair's fracture level
+    (mm from the distal end: lowest, highest, mean of the fracture surface facing the other)."""
     import igl
 
     contacts: list[list[Contact]] = [[] for _ in samples]

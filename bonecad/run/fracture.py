@@ -179,8 +179,8 @@ def reduced_solid(result: Reduced) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         bridge = solid(placed, template.faces)
         up = result.reduction.up
         bottom = min(float((v @ up).min()) for v, _ in reduced)
-        cut = np.concatenate([v[f[r.fracture]].mean(axis=1) @ up for (v, f), r in zip(reduced, result.reduction.fragments)
-                              if r.fracture.any()]) - bottom
+        cut = np.concatenate([v[f[r.fracture]].mean(axis=1) @ up
+                              for (v, f), r in zip(reduced, result.reduction.fragments) if r.fracture.any()]) - bottom
         low, high = float(cut.min()) - 3.0, float(cut.max()) + 3.0
         heights = placed @ up - bottom
         keep = np.abs(heights - 0.5 * (low + high)) < 0.5 * (high - low) + 50.0
