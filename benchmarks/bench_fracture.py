@@ -7,7 +7,8 @@ shortened; with ``--butterfly``, a wedge of 3 % of the volume too) and reduced b
 
 - ``mirror``: the bone's own mirror image, mirrored back (the contralateral of a perfectly symmetric patient:
   the method's floor), and
-- ``contralateral``: the other side's bone mirrored (the femur pairs of ``femur_pairs/``, the JIA tibia pair).
+- ``contralateral``: the other side's bone mirrored (the left femur of each pair of ``femur_pairs/`` broken,
+  the right one its template; the JIA tibia pair).
 
 Columns: per fragment (proximal / distal / butterfly) the mean distance (mm) of its points to their place on the
 intact bone once the whole reduced bone is aligned to the intact one, and its remaining rotation (degrees); for
@@ -44,9 +45,10 @@ def _cases() -> list[tuple[str, str, Path, Path | None]]:
     jia = DATA / "tibia_pairs" / "JIA_MRI_tibia_r.stl"
     cases = [(n, b, p, jia if n == "JIA_MRI_tibia_l" and jia.exists() else c) for n, b, p, c in cases]
     cases += [(p.stem, "femur", p, None) for p in sorted((DATA / "femur").glob("*.stl"))]
-    for p in sorted((DATA / "femur_pairs").glob("*.stl")):
-        other = p.with_name(p.stem[:-1] + ("r" if p.stem.endswith("l") else "l") + ".stl")
-        cases.append((p.stem, "femur", p, other if other.exists() else None))
+    for p in sorted((DATA / "femur_pairs").glob("*_l.stl")):  # the left femur broken, the right one its template
+        other = p.with_name(p.stem[:-1] + "r.stl")
+        if other.exists():
+            cases.append((p.stem, "femur", p, other))
     return cases
 
 
@@ -68,6 +70,8 @@ def run_case(name: str, bone: str, path: Path, other: Path | None, kind: str, te
              seed: int) -> str | None:
     vertices, faces = _load(path, bone)
     if template_kind == "mirror":
+        if other is not None and bone == "femur":
+            return None  # (the pairs' own mirrors: as the femurs of femur/ show, the floor is the same)
         template = _template(vertices, faces, "mirror", f"{name} mirrored twice")
     else:
         if other is None:

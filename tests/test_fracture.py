@@ -156,3 +156,22 @@ def test_bonecad_reduce_writes_the_reduced_bone_and_refuses_a_same_side_template
                  "-q"]) == 2
     assert "same side" in capsys.readouterr().err
     assert not (tmp_path / "o2").exists()
+
+
+def test_a_fracture_images_as_a_ct_with_a_gap_between_the_fragments():
+    from bonecad.imaging.fracture import fracture_ct
+
+    vertices, faces = _frustum()
+    fracture = fracture_bone(vertices, faces, kind="transverse", seed=0, rotation_deg=0.0, translation_mm=0.0,
+                             shortening_mm=-6.0)  # the distal fragment pulled 6 mm away along the axis
+    ct = fracture_ct(fracture, voxel_mm=(2.0, 2.0, 2.0), noise_hu=0.0)
+    frame = fracture.frame
+
+    def hu_at(height_mm: float) -> float:
+        """The CT value on the axis ``height_mm`` above the distal end of the intact bone."""
+        point = frame.centre + (frame.bottom + height_mm) * frame.up
+        i, j, k = np.round(np.linalg.inv(ct.affine) @ np.r_[point, 1.0])[:3].astype(int)
+        return float(ct.hu[k, j, i])
+
+    assert hu_at(fracture.level_mm - 3.0) < 100.0  # soft tissue in the gap
+    assert hu_at(fracture.level_mm + 10.0) > 150.0 and hu_at(fracture.level_mm - 16.0) > 150.0  # bone either side

@@ -334,3 +334,13 @@ def fracture_bone(
             move = rigid(turn, max_pivot if role == "distal" else v.mean(axis=0), shift)
         fragments.append(Fragment(apply(move, v), f, fracture, role, move))
     return Fracture(vertices, faces, frame, kind, float(level), float(butterfly_share), tuple(fragments))
+
+
+def fracture_ct(fracture: Fracture, *, voxel_mm: tuple[float, float, float] = (0.8, 0.8, 1.0), noise_hu: float = 30.0,
+                seed: int = 0):
+    """The displaced fragments imaged as a synthetic CT (``phantom.mesh_to_ct``: cortical shell, marrow, soft
+    tissue, blur, noise) on a clinical grid (in-plane pixel, slice spacing, mm). Fragments that overlap as
+    displaced (a large shortening) image as one body, as they would."""
+    from bonecad.imaging.phantom import mesh_to_ct
+
+    return mesh_to_ct(*fracture.mesh(), voxel_mm=voxel_mm, noise_hu=noise_hu, seed=seed)
