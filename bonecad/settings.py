@@ -350,6 +350,7 @@ class FractureSettings:
     joint_rounds: int
     contact_mm: float
     contact_share: float
+    intermediate_contact_share: float
     poor_rms_mm: float
     poor_inlier_share: float
     speck_volume_share: float

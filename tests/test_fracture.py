@@ -175,3 +175,40 @@ def test_a_fracture_images_as_a_ct_with_a_gap_between_the_fragments():
 
     assert hu_at(fracture.level_mm - 3.0) < 100.0  # soft tissue in the gap
     assert hu_at(fracture.level_mm + 10.0) > 150.0 and hu_at(fracture.level_mm - 16.0) > 150.0  # bone either side
+
+
+@pytest.mark.slow
+def test_the_reduced_bone_is_one_closed_body_its_fracture_surfaces_marked(tmp_path):
+    """Onto a template 3 % longer than the bone the fragments land apart: the template bridges the gap, and the
+    bridge and the fracture surfaces are the faces left out of the fit and the deviation."""
+    if not SMALL_REAL_TIBIA.is_file():
+        pytest.skip("the shared data folder is absent")
+    from bonecad.run.fracture import reduce_fracture, reduced_solid
+
+    fracture, broken, other, _ = _broken_leg(tmp_path)
+    longer = trimesh.load(other)
+    centre = longer.vertices.mean(axis=0)
+    longer.vertices = (longer.vertices - centre) * np.array([1.0, 1.0, 1.03]) + centre
+    longer.export(tmp_path / "longer.stl")
+    result = reduce_fracture(broken, "contralateral", tmp_path / "longer.stl", SETTINGS)
+    proximal, distal = result.reduction.fragments
+    assert [c.neighbour for c in proximal.contacts] == [1]
+    assert proximal.contacts[0].gap_mm > 3.0  # the template's extra length, reported
+    vertices, faces, excluded = reduced_solid(result)
+    solid = trimesh.Trimesh(vertices, faces)
+    assert solid.is_watertight and len(solid.split(only_watertight=False)) == 1
+    heights = (excluded - fracture.frame.centre) @ fracture.frame.up - fracture.frame.bottom
+    assert np.all(np.abs(heights - fracture.level_mm) < 40.0)  # only about the fracture
+
+
+def test_points_near_a_fracture_surface_get_no_weight_in_the_fit():
+    from types import SimpleNamespace
+
+    from bonecad.tspline_model.model import excluded_weights
+
+    frame = SimpleNamespace(to_bone=lambda p: np.asarray(p) - np.array([0.0, 0.0, 10.0]))
+    bone = SimpleNamespace(extra={"excluded_centres": np.array([[0.0, 0.0, 10.0]]), "excluded_mm": 1.0})
+    points = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 1.5], [5.0, 0.0, 0.0]])
+    weights = excluded_weights(points, np.ones(3), bone, frame)  # type: ignore[arg-type]
+    assert weights.tolist() == [0.0, 1.0, 1.0]
+    assert excluded_weights(points, np.ones(3), SimpleNamespace(extra={}), frame).tolist() == [1.0, 1.0, 1.0]

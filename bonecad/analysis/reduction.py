@@ -9,9 +9,11 @@ The template is the intact bone's shape: the other side's bone mirrored about it
    standard deviations, or faces another way are left out), the start with the smallest trimmed RMS kept;
 3. its fracture faces found (far from the template surface, or facing across it, in the half towards the
    fracture) and left out: the ICP again on its periosteal surface only;
-4. all fragments refined together: each fragment's periosteal points pulled onto the template and its fracture
-   points onto its neighbours' fracture surfaces (``contact_share`` of the weight), so the fragments neither
-   overlap nor leave gaps beyond the fracture's own.
+4. the fragments refined together: each fragment's periosteal points pulled onto the template and its fracture
+   points onto its neighbours' fracture surfaces (``contact_share`` of the weight for the main fragments, off
+   by default; ``intermediate_contact_share`` for a butterfly, whose small periosteal patch on a round shaft
+   leaves its place along and about the axis loose), so the fragments neither overlap nor leave gaps beyond
+   the fracture's own.
 
 Length, axis alignment and torsion therefore come from the template (and, across a fracture that interlocks,
 from the fragments' contact). Results are in the input's coordinates with the proximal fragment where it lies.
@@ -361,8 +363,10 @@ def reduce_fragments(bodies: list[FragmentBody], template: Template, settings: F
         fits[i], fractures[i], periosteal[i] = _registered(body, samples[i], target, starts, None, settings)
     transforms = [f.transform for f in fits]
     fracture_samples = [s.subset(fr[s.faces]) for s, fr in zip(samples, fractures)]
-    if settings.contact_share > 0:
-        transforms = _refined_together(transforms, periosteal, fracture_samples, target, settings)
+    shares = [settings.contact_share if i in (p, d) else settings.intermediate_contact_share
+              for i in range(len(bodies))]
+    if max(shares) > 0:
+        transforms = _refined_together(transforms, periosteal, fracture_samples, target, shares, settings)
     finals = [_icp(periosteal[i], target, t, settings, 1) for i, t in enumerate(transforms)]
     anchor = np.linalg.inv(transforms[p])
     to_input = [anchor @ t for t in transforms]
@@ -411,17 +415,20 @@ def _intermediate_starts(centre: np.ndarray, target: _Target, mains: list[np.nda
 
 
 def _refined_together(transforms: list[np.ndarray], periosteal: list[_Samples], fracture: list[_Samples],
-                      target: _Target, settings: FractureSettings) -> list[np.ndarray]:
+                      target: _Target, shares: list[float], settings: FractureSettings) -> list[np.ndarray]:
     """All fragments refined in turn: periosteal points onto the template, fracture points onto the other
-    fragments' fracture surfaces (within ``contact_mm``, facing them), the contact carrying ``contact_share``
-    of each fragment's weight."""
+    fragments' fracture surfaces (within ``contact_mm``, facing them), the contact carrying ``shares[i]`` of
+    fragment i's weight (a fragment of share 0 stays where the template puts it)."""
     transforms = list(transforms)
     for _ in range(settings.joint_rounds):
         for i in range(len(transforms)):
+            share = shares[i]
+            if share <= 0:
+                continue
             moved, residuals, normals, kept, _ = _matches(periosteal[i], target, transforms[i],
                                                           settings.trim_floor_mm, settings.normal_cos)
             parts = [(moved.points[kept], residuals[kept], normals[kept],
-                      np.full(int(kept.sum()), (1 - settings.contact_share) / max(int(kept.sum()), 1)))]
+                      np.full(int(kept.sum()), (1 - share) / max(int(kept.sum()), 1)))]
             mine = fracture[i].moved(transforms[i])
             others = [fracture[j].moved(transforms[j]) for j in range(len(transforms)) if j != i]
             others = [o for o in others if len(o.points)]
@@ -434,7 +441,7 @@ def _refined_together(transforms: list[np.ndarray], periosteal: list[_Samples], 
                 if near.sum() >= 12:
                     res = np.einsum("ij,ij->i", mine.points[near] - pool.points[idx[near]], pool.normals[idx[near]])
                     parts.append((mine.points[near], res, pool.normals[idx[near]],
-                                  np.full(int(near.sum()), settings.contact_share / int(near.sum()))))
+                                  np.full(int(near.sum()), share / int(near.sum()))))
             if sum(len(part[0]) for part in parts) < 12:
                 continue
             points, res, nrm, w = (np.concatenate([part[k] for part in parts]) for k in range(4))
