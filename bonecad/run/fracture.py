@@ -171,7 +171,6 @@ def reduced_solid(result: Reduced) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     bodies = [FragmentBody(p.vertices, p.faces, p.role) for p in result.broken.fragments]
     reduced = result.reduction.reduced_meshes(bodies)
     parts = [solid(v, f) for v, f in reduced]
-    fracture = {part.original_id(): f.fracture for part, f in zip(parts, result.reduction.fragments)}
     union = manifold3d.Manifold.batch_boolean(parts, manifold3d.OpType.Add)
     if len(union.decompose()) > 1 and any(r.fracture.any() for r in result.reduction.fragments):
         template = result.reduction.template
@@ -194,11 +193,17 @@ def reduced_solid(result: Reduced) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     faces = np.asarray(mesh.tri_verts, dtype=np.int64)
     vertices = np.asarray(mesh.vert_properties[:, :3], dtype=np.float64)
     origin = np.repeat(np.asarray(mesh.run_original_id), np.diff(np.asarray(mesh.run_index)) // 3)
-    face_id = np.asarray(mesh.face_id, dtype=np.int64)
-    excluded = np.ones(len(faces), dtype=bool)
-    for oid, mask in fracture.items():
-        mine = origin == oid
-        excluded[mine] = mask[face_id[mine]]
+    centres = vertices[faces].mean(axis=1)
+    excluded = np.ones(len(faces), dtype=bool)  # (the bridge's faces)
+    for (v, f), part, r in zip(reduced, parts, result.reduction.fragments):
+        mine = origin == part.original_id()
+        excluded[mine] = False
+        if r.fracture.any() and mine.any():  # a face of the union on one of the fragment's fracture faces
+            import igl
+
+            on = igl.point_mesh_squared_distance(centres[mine], np.ascontiguousarray(v, dtype=np.float64),
+                                                 np.ascontiguousarray(f[r.fracture], dtype=np.int64))[0]
+            excluded[np.flatnonzero(mine)[on < 1e-6]] = True
     return vertices, faces, vertices[faces[excluded]].mean(axis=1)
 
 
