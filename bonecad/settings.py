@@ -386,6 +386,40 @@ class CohortSettings:
 
 
 @dataclass(frozen=True)
+class FractureSettings:
+    """Fracture reduction (``analysis.reduction``): sample spacings (mm) of the template and the fragments, the
+    starts (turns about the axis, the band of an end as a share of the length, an intermediate fragment's search
+    along the axis mm), the ICP (iterations per start and in all, trim floor mm, cosine of the largest normal
+    disagreement), fracture faces (distance mm), the joint refinement (rounds, contact reach mm, contact's
+    share of the weight), a poor registration (RMS mm, share of points kept), specks (share of the fragments'
+    volume), and the templates' expected uncertainties (mm, degrees)."""
+
+    template_spacing_mm: float
+    fragment_spacing_mm: float
+    fragment_points: int
+    start_points: int
+    start_turns: int
+    end_band_share: float
+    intermediate_search_mm: float
+    start_iterations: int
+    icp_iterations: int
+    trim_floor_mm: float
+    normal_cos: float
+    fracture_distance_mm: float
+    joint_rounds: int
+    contact_mm: float
+    contact_share: float
+    intermediate_contact_share: float
+    poor_rms_mm: float
+    poor_inlier_share: float
+    speck_volume_share: float
+    same_side_rms_ratio: float
+    contralateral_uncertainty_mm: float
+    contralateral_uncertainty_deg: float
+    exclusion_mm: float
+
+
+@dataclass(frozen=True)
 class Settings:
     """Every setting of a run, one section per stage (see ``data/defaults.toml``)."""
 
@@ -405,6 +439,7 @@ class Settings:
     plate: PlateSettings
     pipeline: PipelineSettings
     cohort: CohortSettings
+    fracture: FractureSettings
 
     @classmethod
     def load(cls, path: str | Path | None = None,

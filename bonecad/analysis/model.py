@@ -17,6 +17,7 @@ from bonecad.analysis.folds import FoldCheck, shape_folds
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.mesh.bone_mesh import BoneMesh
+from bonecad.mesh.closest import TriangleLocator
 from bonecad.analysis.continuity import (ContinuityTolerances, KnotContinuity, SeamContinuity, knot_continuity,
                                          seam_continuity)
 from bonecad.mesh.tessellation import Tessellation, TessellationSettings
@@ -88,9 +89,17 @@ def model_deviation(tess: Tessellation, bone: BoneMesh, frame: AnatomicalFrame,
                     settings: AnalysisSettings) -> DeviationResult:
     """Signed deviation between the bone mesh (the full mesh) and the model, both ways, overall and per region;
     the colour map's at the vertices of its working copy (``BoneMesh.work``)."""
-    deviation = shape_deviation(bone.vertices, bone.faces, tess, regions=region_labels(frame),
+    faces = bone.faces
+    locator: TriangleLocator | None = bone.locator
+    if bone.extra.get("excluded_centres") is not None:  # a reduced fracture: its fracture surfaces are not bone
+        from scipy.spatial import cKDTree
+
+        centres = bone.vertices[faces].mean(axis=1)
+        near = cKDTree(bone.extra["excluded_centres"]).query(centres, distance_upper_bound=bone.extra["excluded_mm"])
+        faces, locator = faces[~np.isfinite(near[0])], None
+    deviation = shape_deviation(bone.vertices, faces, tess, regions=region_labels(frame),
                                 sample_points=settings.sample_points, edges_mm=settings_band_edges(settings),
-                                map_vertices=bone.work.vertices, mesh_locator=bone.locator)
+                                map_vertices=bone.work.vertices, mesh_locator=locator)
     stats = deviation.mesh_to_cad.stats
     log.info("RMS %.3f mm, worst %.3f mm outside, %.3f mm inside", stats.rms_mm, stats.max_outside_mm,
              stats.max_inside_mm)

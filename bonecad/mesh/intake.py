@@ -410,7 +410,8 @@ def prepare_bone(
         sizes = ", ".join(f"{b.length_mm:.0f} mm / {b.volume_mm3 / 1000:.0f} cm3" for b in (infos[0], *broken))
         raise InputError(
             f"the tibia seems broken into {1 + len(broken)} large pieces along its axis ({sizes}); "
-            "bonecad does not guess how to join them: segment the bone as one body",
+            "to model the fractured bone, reduce it onto the other side's bone first: `bonecad reduce INPUT "
+            "--template contralateral OTHER_SIDE.stl --out DIR` (or `bonecad reconstruct --reduce --template ...`)",
             path,
         )
     check_not_fused(work.vertices, work.faces, settings, path)

@@ -137,6 +137,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="NURBS apex holes: a ring of lines lofted flat, or a fill-hole patch (default from config)")
     p.add_argument("--compare-tensor-product", action="store_true", default=None,
                    help="also fit a tensor-product B-spline to the T-spline's tolerance and report its control points")
+    p.add_argument("--reduce", action="store_true", help="the input is a broken bone: reduce its fragments onto "
+                   "--template first (bonecad reduce), then model the reduced bone, its fracture surfaces left out")
+    p.add_argument("--template", nargs=2, metavar=("KIND", "PATH"), help="with --reduce: 'contralateral MESH'")
+
+    p = sub.add_parser("reduce", help="broken bone: fragments moved onto a template -> reduced.stl, reduction.json",
+                       description="Virtual fracture reduction: name the fragments of a broken tibia or femur (a mesh "
+                       "of closed bodies), move each rigidly onto the template (the other side's bone mirrored "
+                       "about its own sagittal plane), refine them together; write reduced.stl, reduction.json "
+                       "(per fragment: role, 4x4 transform, translation, rotation, registration RMS, overlap and "
+                       "gap with its neighbours, axial extent; the fracture lines) and reduction.png into --out.")
+    p.add_argument("input", type=Path, help="mesh file of the broken bone (STL, OBJ, PLY, OFF), one body per fragment")
+    p.add_argument("--template", nargs=2, metavar=("KIND", "PATH"), required=True,
+                   help="'contralateral MESH': the other side's bone (mirrored here)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    _add_common(p)
 
     p = sub.add_parser("patch", help="one region of the T-spline surface (a plate's footprint) -> patch.step/.iges",
                        description="Write one region of the bone surface as one untrimmed B-spline face, exact to "
@@ -404,12 +419,28 @@ def _run(args: argparse.Namespace) -> int:
     elif args.command in ("frame", "curves", "reconstruct"):
         stage: dict[str, pipeline.Until] = {"frame": "frame", "curves": "curves", "reconstruct": "models"}
         until = stage[args.command]
+        if getattr(args, "reduce", False) != (getattr(args, "template", None) is not None):
+            raise InputError("--reduce and --template go together: --reduce --template contralateral MESH")
         with fit_progress(args, settings.tspline.max_rounds) as progress:
-            result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units,
-                                          progress=progress)
+            if getattr(args, "reduce", False):
+                from bonecad.run.fracture import reconstruct_reduced
+
+                result, _ = reconstruct_reduced(args.input, args.out, args.template[0], args.template[1], settings,
+                                                units=args.units, progress=progress)
+            else:
+                result = pipeline.reconstruct(args.input, args.out, settings, until=until, units=args.units,
+                                              progress=progress)
         _print_result(result)
         print(f"{result.frame.side} {result.frame.bone}; {len(result.files)} files written to {args.out} "
               f"({result.wall_s:.1f} s)")
+    elif args.command == "reduce":
+        from bonecad.run.fracture import run_reduce
+
+        record = run_reduce(args.input, args.out, args.template[0], args.template[1], settings, units=args.units)
+        for f in record["fragments"]:
+            print(f"{f['role']:<12} moved {f['translation_mm']:6.1f} mm, turned {f['rotation_deg']:5.1f} deg, "
+                  f"RMS {f['registration_rms_mm']:.2f} mm" + ("  POORLY REGISTERED" if f["poorly_registered"] else ""))
+        print(f"reduced {record['bone']} ({len(record['fragments'])} fragments) written to {args.out}")
     elif args.command == "measure":
         doc = pipeline.run_measure(args.input, settings, units=args.units, out=args.out)
         _print_measurements(doc)

@@ -154,7 +154,20 @@ def fit_points(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings
     vertices, faces = bone_coordinates(bone, frame)
     if bone.working is not None:
         vertices, faces = coarser_copy(vertices, faces, settings.fit_copy_edge_mm)
-    return fit_samples(vertices, faces, settings.fit_point_spacing_mm)
+    points, weights = fit_samples(vertices, faces, settings.fit_point_spacing_mm)
+    return points, excluded_weights(points, weights, bone, frame)
+
+
+def excluded_weights(points: np.ndarray, weights: np.ndarray, bone: BoneMesh, frame: AnatomicalFrame) -> np.ndarray:
+    """``weights`` zeroed at the points (bone coordinates) within ``bone.extra["excluded_mm"]`` of the faces
+    centred at ``bone.extra["excluded_centres"]`` (scanner mm): a reduced fracture's surfaces, not bone."""
+    centres = bone.extra.get("excluded_centres")
+    if centres is None or not len(centres):
+        return weights
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(frame.to_bone(centres)).query(points, distance_upper_bound=bone.extra["excluded_mm"])[0]
+    return np.where(np.isfinite(near), 0.0, weights)
 
 
 @dataclass(frozen=True)
