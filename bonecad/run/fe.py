@@ -19,7 +19,7 @@ import numpy as np
 from bonecad.errors import InputError, KernelError
 from bonecad.export.fe import FEDocument
 from bonecad.export.registry import export
-from bonecad.fe.elasticity import solve_case
+from bonecad.fe.elasticity import solve_cases
 from bonecad.fe.materials import (Calibration, element_moduli, group_moduli, sample_trilinear,
                                   subdivision_levels)
 from bonecad.fe.tets import TetMesh, element_regions, end_node_sets, quality_summary
@@ -154,11 +154,11 @@ def build_fe(step: Path, frame: dict, fe: FESettings, *, ct: Path | None = None,
     timings["materials_s"] = time.perf_counter() - start
     stiffness = {}
     if fe.solver_check:
-        for case in ("axial", "torsion"):
-            start = time.perf_counter()
-            k = solve_case(mesh.nodes, mesh.tets, materials.moduli_mpa[materials.element_material], fe.poisson,
-                           origin, axis, fe.end_depth_mm, case, order=1)  # type: ignore[arg-type]
-            timings[f"solve_{case}_s"] = time.perf_counter() - start
+        start = time.perf_counter()
+        found = solve_cases(mesh.nodes, mesh.tets, materials.moduli_mpa[materials.element_material], fe.poisson,
+                            origin, axis, fe.end_depth_mm, ("axial", "torsion"), order=1)
+        timings["solve_s"] = time.perf_counter() - start
+        for case, k in found.items():
             unit = "N/mm" if case == "axial" else "N mm/rad"
             stiffness[case] = {"solver": round(k.solver, 1), "beam_theory": round(k.beam, 1),
                                "ratio": round(k.ratio, 4), "unit": unit, "dofs": k.dofs, "iterations": k.iterations}
