@@ -15,7 +15,7 @@ the shear term integral dz / (k G A), k = 0.5 for a thin tube, 0.9 for a solid s
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import scipy.sparse as sp
@@ -66,7 +66,7 @@ def solve_cases(nodes: np.ndarray, tets: np.ndarray, modulus: np.ndarray, poisso
     top = h >= high
     centre = corners[hn >= high].mean(axis=0)
     e1, _ = _frame(axis)
-    out = {}
+    out: dict[str, Stiffness] = {}
     for case in cases:
         u = np.zeros(n_dofs)
         direction = axis if case == "axial" else e1
@@ -123,7 +123,7 @@ def _solve(K: sp.csr_matrix, rhs: np.ndarray, locs: np.ndarray, comp: np.ndarray
 
 
 def stiffness_matrix(nodes: np.ndarray, tets: np.ndarray, modulus: np.ndarray, poisson: float, order: int,
-                     chunk: int = 4000) -> tuple[sp.csr_matrix, object]:
+                     chunk: int = 4000) -> tuple[sp.csr_matrix, Any]:
     """The linear-elastic stiffness matrix (dofs interleaved: 3 i + component, i a scalar dof of the
     scikit-fem P1/P2 basis on the straight tetrahedra) with element moduli (m,) MPa, and that scalar basis.
     Assembled here from scikit-fem's basis gradients and quadrature, vectorised over elements (scikit-fem's

@@ -23,8 +23,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from bonecad.fe.tets import tet_volumes
-
 # 4-point rule for tetrahedra, degree 2 (barycentric a, b, b, b), equal weights
 _A, _B = 0.5854101966249685, 0.1381966011250105
 _RULE = np.array([[_A, _B, _B, _B], [_B, _A, _B, _B], [_B, _B, _A, _B], [_B, _B, _B, _A]])

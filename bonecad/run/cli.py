@@ -383,9 +383,8 @@ def _run(args: argparse.Namespace) -> int:
         from bonecad.run.fe import fe_settings, run_fe
 
         settings = fe_settings(settings, args.size, args.order, args.calibration)
-        doc = run_fe(args.source, args.out, settings, model=args.model, ct=args.ct, homogeneous=args.homogeneous,
-                     iga=args.iga, units=args.units)
-        s = doc.summary
+        s = run_fe(args.source, args.out, settings, model=args.model, ct=args.ct, homogeneous=args.homogeneous,
+                   iga=args.iga, units=args.units).summary
         print(f"{s['elements']} tetrahedra (order {s['order']}), SICN min {s['quality']['sicn']['min']}, volume "
               f"{100 * s['volume_mm3']['relative_difference']:+.3f} % of the solid's; {s['materials']['count']} "
               f"materials ({s['materials']['source']}); " + "; ".join(

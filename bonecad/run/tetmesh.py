@@ -13,6 +13,7 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 
@@ -26,7 +27,7 @@ TET4, TET10 = 4, 11
 
 
 @contextmanager
-def _session() -> Iterator[object]:
+def _session() -> Iterator[Any]:
     import gmsh
 
     with _LOCK:
@@ -119,7 +120,8 @@ def _check_count(gmsh, size_mm: float, max_elements: int, step: Path) -> None:
     pos = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
     pos[tags.astype(np.int64)] = np.arange(len(tags))
     xyz = coords.reshape(-1, 3)
-    tri = xyz[pos[np.concatenate([np.asarray(t, dtype=np.int64) for k, t in zip(types, tri_nodes) if k == 2]).reshape(-1, 3)]]
+    corners = np.concatenate([np.asarray(t, dtype=np.int64) for k, t in zip(types, tri_nodes) if k == 2])
+    tri = xyz[pos[corners.reshape(-1, 3)]]
     volume = abs(float(np.sum(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])))) / 6.0)
     edge = float(np.mean(np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1)))
     estimate = int(1.2 * estimated_elements(volume, min(edge, size_mm)))

@@ -81,15 +81,22 @@ def iga_text(surface: IgaSurface, comment: str = "", drop: float = 1e-14) -> str
         for e in range(ext.n_elements):
             anchors, coef = ext.element_operator(e)
             rows_local = coef.reshape(-1, 4, 4).transpose(0, 2, 1).reshape(-1, 16)  # 4 a + b -> 4 b + a
-            sub = gc[anchors]  # (k_local, n_global)
-            glob = np.unique(sub.indices)
-            rows = np.asarray(sub[:, glob].T @ rows_local)  # (k_global, 16)
+            ptr = gc.indptr
+            plain = np.all(ptr[anchors + 1] - ptr[anchors] == 1)
+            cols = gc.indices[np.minimum(ptr[anchors], max(gc.nnz - 1, 0))]  # the first global of each local one
+            if plain and np.all(gc.data[ptr[anchors]] == 1.0) and len(np.unique(cols)) == len(cols):
+                order = np.argsort(cols)  # each local function is one global one
+                glob, rows = cols[order], rows_local[order]
+            else:
+                sub = gc[anchors]  # (k_local, n_global)
+                glob = np.unique(sub.indices)
+                rows = np.asarray(sub[:, glob].T @ rows_local)  # (k_global, 16)
             rows[np.abs(rows) < drop] = 0.0
             keep = np.any(rows != 0.0, axis=1)
             glob, rows = glob[keep], rows[keep]
             out.append(f"belem {len(glob)} 3 3")
             out.append(" ".join(map(str, glob)))
-            out += [" ".join(f"{c:.17g}" for c in row) for row in rows]
+            out += [" ".join(map(repr, row)) for row in rows.tolist()]
     for name, kind, entries in surface.sets:
         flat = " ".join(f"{e} {side}" for e, side in entries) if kind == "side" else " ".join(map(str, entries))
         out.append(f"set {len(entries)} {kind} {name} {flat}")
