@@ -328,7 +328,7 @@ class CohortSettings:
 
 @dataclass(frozen=True)
 class FESettings:
-    """``bonecad fe``: tetrahedra (largest edge mm, order, elements per turn of curvature, smallest edge as a
+    """``bonecad fe``: tetrahedra (largest edge mm, order, Netgen's optimiser on, elements per turn of curvature, smallest edge as a
     share of the largest, most elements), the end node sets' depth (mm), the solver check; HU -> density
     calibration ([slope g/cm3 per HU, intercept g/cm3], or [] for none), ash from QCT density ([slope,
     intercept]), ash over apparent density, E = a rho^b (MPa, [a, b]) of the "ash" or "apparent" density, its
@@ -337,6 +337,7 @@ class FESettings:
 
     size_mm: float
     order: int
+    netgen: bool
     curvature_elements: int
     min_size_share: float
     max_elements: int

@@ -159,3 +159,75 @@ def test_area_and_volume_by_gauss_quadrature_match_opencascade(iga, phantom_tspl
     shape = phantom_tspline_model.shape
     assert area == pytest.approx(area_mm2(shape, 1e-9), rel=1e-6)
     assert abs(volume) == pytest.approx(volume_mm3(shape, 1e-9), rel=1e-6)
+
+
+def _sphere_surface(radius: float, hole_deg: float = 12.0):
+    """A sphere as a periodic tube (least-squares fit) closed by two apex caps, as the bone's model is."""
+    from bonecad.splines.tspline import TSpline
+    from bonecad.splines.tspline.iga import closed_surface
+    from bonecad.tspline_model.caps import build_cap
+
+    period = 2 * np.pi * radius
+    theta0 = np.radians(hole_deg)
+    s_knots = np.linspace(0.0, period, 17)[:-1]
+    t_knots = np.linspace(theta0, np.pi - theta0, 11)
+    grid = TSpline.from_grid(s_knots, t_knots, np.zeros((16, 13, 3)), s_period=period)
+    s, t = np.meshgrid(np.linspace(0, period, 120, endpoint=False), np.linspace(theta0, np.pi - theta0, 80))
+    s, t = s.ravel(), t.ravel()
+
+    def sphere(s, t):
+        phi = 2 * np.pi * s / period
+        return radius * np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), np.cos(t)], axis=1)
+
+    a = grid.basis_matrix(s, t).toarray()
+    cp, *_ = np.linalg.lstsq(a, sphere(s, t), rcond=None)
+    tube = grid.with_control_points(cp)
+    rng = np.random.default_rng(0)
+    caps = []
+    for end, z in (("distal", 1.0), ("proximal", -1.0)):
+        th = rng.uniform(0, theta0 * 0.95, 200)
+        th = th if z > 0 else np.pi - th
+        hole = sphere(rng.uniform(0, period, 200), th)
+        caps.append((end, build_cap(tube, end, hole, np.array([0.0, 0.0, z])).tspline))
+    return closed_surface(tube, caps)
+
+
+def test_laplace_beltrami_eigenvalues_of_a_sphere_from_the_files_basis(tmp_path):
+    """The file's basis (tube C2, caps with one pole function each, C0 rings) on a sphere of radius 20 mm:
+    the first eigenvalues of the Laplace-Beltrami operator are l (l + 1) / R^2 (l = 1: three, l = 2: five)."""
+    import scipy.linalg
+
+    from bonecad.splines.tspline.iga import iga_text
+
+    radius = 20.0
+    path = tmp_path / "sphere.iga"
+    path.write_text(iga_text(_sphere_surface(radius)))
+    f = read_iga(path)
+    assert np.all(f.weights == 1.0)
+    n = len(f.nodes)
+    g, w = np.polynomial.legendre.leggauss(6)
+    g, w = 0.5 * (g + 1.0), 0.5 * w
+    u, v = (x.ravel() for x in np.meshgrid(g, g, indexing="ij"))
+    ww = np.outer(w, w).ravel()
+    bu, bv, du, dv = _bernstein(u), _bernstein(v), _bernstein(u, 1), _bernstein(v, 1)
+
+    def tensor(a, b):
+        return (b[:, :, None] * a[:, None, :]).reshape(len(u), 16)  # 4 j + i
+
+    stiff, mass = np.zeros((n, n)), np.zeros((n, n))
+    for idx, rows in f.elements:
+        nb, nu_, nv = tensor(bu, bv) @ rows.T, tensor(du, bv) @ rows.T, tensor(bu, dv) @ rows.T  # (q, k)
+        p = f.nodes[idx]
+        xu, xv = nu_ @ p, nv @ p
+        g11, g12, g22 = (np.einsum("ij,ij->i", a, b) for a, b in ((xu, xu), (xu, xv), (xv, xv)))
+        det = g11 * g22 - g12 ** 2
+        da = ww * np.sqrt(det)
+        i11, i12, i22 = g22 / det, -g12 / det, g11 / det
+        k = (np.einsum("q,qa,qb->ab", da * i11, nu_, nu_) + np.einsum("q,qa,qb->ab", da * i12, nu_, nv)
+             + np.einsum("q,qa,qb->ab", da * i12, nv, nu_) + np.einsum("q,qa,qb->ab", da * i22, nv, nv))
+        stiff[np.ix_(idx, idx)] += k
+        mass[np.ix_(idx, idx)] += np.einsum("q,qa,qb->ab", da, nb, nb)
+    values = scipy.linalg.eigh(stiff, mass, eigvals_only=True, subset_by_index=[0, 8])
+    expected = np.array([0.0] + [2.0] * 3 + [6.0] * 5) / radius ** 2
+    assert abs(values[0]) < 1e-8
+    assert np.all(np.abs(values[1:] / expected[1:] - 1.0) < 0.005), values * radius ** 2

@@ -135,7 +135,7 @@ def build_fe(step: Path, frame: dict, fe: FESettings, *, ct: Path | None = None,
     brep_volume = volume_mm3(solid)
     start = time.perf_counter()
     mesh = mesh_step(step, fe.size_mm, fe.order, curvature_elements=fe.curvature_elements,
-                     min_size_share=fe.min_size_share, max_elements=fe.max_elements)
+                     min_size_share=fe.min_size_share, max_elements=fe.max_elements, netgen=fe.netgen)
     timings["mesh_s"] = time.perf_counter() - start
     volumes = mesh.volumes()
     if np.any(volumes <= 0):

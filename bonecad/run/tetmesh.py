@@ -49,11 +49,11 @@ def estimated_elements(volume_mm3: float, size_mm: float) -> int:
 
 
 def mesh_step(step: Path, size_mm: float, order: int, *, curvature_elements: int, min_size_share: float,
-              max_elements: int, optimise: bool = True) -> TetMesh:
+              max_elements: int, netgen: bool = True) -> TetMesh:
     """Tetrahedra of the one solid in ``step``: edge length ``size_mm`` at most, down to
     ``min_size_share * size_mm`` where the surface curves (``curvature_elements`` per full turn), first or
-    second order (gmsh's node order; the second-order nodes on the curved geometry); element quality
-    SICN and gamma. InputError when the file holds no solid, gmsh fails, or the mesh would exceed
+    second order (gmsh's node order; the second-order nodes on the curved geometry), optimised by gmsh's
+    own pass and, with ``netgen``, Netgen's; element quality SICN and gamma. InputError when the file holds no solid, gmsh fails, or the mesh would exceed
     ``max_elements``."""
     with _session() as gmsh:
         try:
@@ -67,7 +67,8 @@ def mesh_step(step: Path, size_mm: float, order: int, *, curvature_elements: int
         gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
         gmsh.option.setNumber("Mesh.MeshSizeMin", min_size_share * size_mm)
         gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", curvature_elements)
-        gmsh.option.setNumber("Mesh.Optimize", 1 if optimise else 0)
+        gmsh.option.setNumber("Mesh.Optimize", 1)
+        gmsh.option.setNumber("Mesh.OptimizeNetgen", 1 if netgen else 0)
         gmsh.option.setNumber("Mesh.ElementOrder", 1)
         gmsh.option.setNumber("Mesh.HighOrderOptimize", 0)
         gmsh.option.setNumber("Mesh.Binary", 0)
