@@ -53,8 +53,8 @@ def mesh_step(step: Path, size_mm: float, order: int, *, curvature_elements: int
     """Tetrahedra of the one solid in ``step``: edge length ``size_mm`` at most, down to
     ``min_size_share * size_mm`` where the surface curves (``curvature_elements`` per full turn), first or
     second order (gmsh's node order; the second-order nodes on the curved geometry), optimised by gmsh's
-    own pass and, with ``netgen``, Netgen's; element quality SICN and gamma. InputError when the file holds no solid, gmsh fails, or the mesh would exceed
-    ``max_elements``."""
+    own pass and, with ``netgen``, Netgen's; element quality SICN and gamma. InputError when the file
+    holds no solid, gmsh fails, or the mesh would exceed ``max_elements``."""
     with _session() as gmsh:
         try:
             gmsh.model.occ.importShapes(str(step))
