@@ -329,11 +329,12 @@ class CohortSettings:
 @dataclass(frozen=True)
 class FESettings:
     """``bonecad fe``: tetrahedra (largest edge mm, order, Netgen's optimiser on, elements per turn of
-    curvature, smallest edge as a share of the largest, most elements), the end node sets' depth (mm), the
-    solver check; HU -> density calibration ([slope g/cm3 per HU, intercept g/cm3], or [] for none), ash from QCT density ([slope,
-    intercept]), ash over apparent density, E = a rho^b (MPa, [a, b]) of the "ash" or "apparent" density, its
-    floor (MPa), the homogeneous cortical modulus (MPa) and Poisson's ratio, the largest number of materials,
-    the CT quadrature's sub-tetrahedron length (voxels)."""
+    curvature, smallest edge as a share of the largest, most elements), the end node sets' depth (mm),
+    the solver check; HU -> density calibration ([slope g/cm3 per HU, intercept g/cm3], or [] for none),
+    ash from QCT density ([slope, intercept]), ash over apparent density, E = a rho^b (MPa, [a, b]) of
+    the "ash" or "apparent" density, its floor (MPa), the homogeneous cortical modulus (MPa) and
+    Poisson's ratio, the largest number of materials, the CT quadrature's sub-tetrahedron length
+    (voxels)."""
 
     size_mm: float
     order: int
