@@ -102,6 +102,9 @@ def run_fe(source: str | Path, out_dir: str | Path, settings: Settings, *, model
             if iga:
                 from bonecad.export.iga import iga_from_json
 
+                if not (folder / "tspline.json").exists():
+                    raise InputError("--iga needs the T-spline model (tspline.json): reconstruct with --model "
+                                     "tspline or both", folder)
                 iga_from_json(folder / "tspline.json", stage)
     return doc
 
