@@ -183,7 +183,8 @@ def build_fe(step: Path, frame: dict, fe: FESettings, *, ct: Path | None = None,
                       **material_info},
         "stiffness": stiffness,
         "load_cases": "distal end's nodes fixed; proximal end's nodes moved as one rigid plate along the axis "
-                      "(axial) or about it (torsion); beam theory from the mesh's cross-sections between the two",
+                      "(axial) or about it (torsion); linear tetrahedra on the corner nodes (order 1 fields, also for "
+                      "a second-order mesh); beam theory from the mesh's cross-sections between the two",
         "frame": {"origin": origin.tolist(), "long_axis": axis.tolist()},
         "timings_s": {k: round(v, 2) for k, v in timings.items()},
         "note_timings": "wall-clock seconds, one process",
