@@ -118,8 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("reconstruct", help="mesh or CT -> NURBS and T-spline CAD models, analysis, report",
                        description="The whole pipeline: frame, contour curves, the NURBS baseline and/or the "
                        "T-spline model, their deviation/continuity/zebra analysis. Writes nurbs.step/.iges, "
-                       "tspline.step/.iges/.json/.tsm/.iga, curves.step/.iges/.json, frame.json, report.json, report.html "
-                       "and PNG figures into --out.")
+                       "tspline.step/.iges/.json/.tsm/.iga, curves.step/.iges/.json, frame.json, report.json, "
+                       "report.html and PNG figures into --out.")
     _add_stage(p)
     p.add_argument("--model", choices=["nurbs", "tspline", "both"], default=None,
                    help="which models to build (default: both, or [pipeline] models of --config)")
