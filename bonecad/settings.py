@@ -420,6 +420,42 @@ class FractureSettings:
 
 
 @dataclass(frozen=True)
+class FESettings:
+    """``bonecad fe``: tetrahedra (largest edge mm, order, Netgen's optimiser on, elements per turn of
+    curvature, smallest edge as a share of the largest, most elements), the end node sets' depth (mm),
+    the solver check; HU -> density calibration ([slope g/cm3 per HU, intercept g/cm3], or [] for none),
+    ash from QCT density ([slope, intercept]), ash over apparent density, E = a rho^b (MPa, [a, b]) of
+    the "ash" or "apparent" density, its floor (MPa), the homogeneous cortical modulus (MPa) and
+    Poisson's ratio, the largest number of materials, the CT quadrature's sub-tetrahedron length
+    (voxels)."""
+
+    size_mm: float
+    order: int
+    netgen: bool
+    curvature_elements: int
+    min_size_share: float
+    max_elements: int
+    end_depth_mm: float
+    solver_check: bool
+    hu_to_density: tuple[float, ...]
+    ash_from_qct: tuple[float, float]
+    ash_share_of_apparent: float
+    modulus_law: tuple[float, float]
+    modulus_density: Literal["ash", "apparent"]
+    min_modulus_mpa: float
+    cortical_modulus_mpa: float
+    poisson: float
+    materials: int
+    quadrature_voxels: float
+
+    def __post_init__(self) -> None:
+        if self.size_mm <= 0 or self.order not in (1, 2) or self.materials < 1 or self.max_elements < 1:
+            raise ValueError("size_mm must be > 0, order 1 or 2, materials and max_elements >= 1")
+        if len(self.hu_to_density) not in (0, 2):
+            raise ValueError("hu_to_density: [slope, intercept] or [] (no calibration)")
+
+
+@dataclass(frozen=True)
 class Settings:
     """Every setting of a run, one section per stage (see ``data/defaults.toml``)."""
 
@@ -440,6 +476,7 @@ class Settings:
     pipeline: PipelineSettings
     cohort: CohortSettings
     fracture: FractureSettings
+    fe: FESettings
 
     @classmethod
     def load(cls, path: str | Path | None = None,

@@ -25,7 +25,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("bonecad.imaging", "bonecad.anatomy"),                 # stages: CT -> mesh, anatomical frame
     ("bonecad.contours",),                                  # stage: contour curves
     ("bonecad.nurbs_model", "bonecad.tspline_model"),       # stages: the two models
-    ("bonecad.analysis",),                                  # stage: deviation, continuity
+    ("bonecad.analysis", "bonecad.fe"),                     # stages: deviation, continuity; FE arrays
     ("bonecad.render", "bonecad.export"),                   # edge: figures, files
     ("bonecad.run",),                                       # edge: runner, executors, CLI
     ("bonecad",),                                           # the package's face (__init__)
@@ -101,6 +101,12 @@ def test_processes_only_in_the_executors():
                        and m not in EXECUTORS)
     forks = sorted(m for m, p in MODULES.items() if "os.fork" in p.read_text() and m not in EXECUTORS)
     assert not offenders and not forks
+
+
+def test_gmsh_only_in_the_mesher():
+    """gmsh keeps one global model and writes files: only the edge's mesher (``run/tetmesh``) calls it."""
+    offenders = sorted(m for m, (_, other) in IMPORTS.items() if "gmsh" in other and m != "bonecad.run.tetmesh")
+    assert not offenders
 
 
 def test_no_import_cycle():

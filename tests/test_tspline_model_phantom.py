@@ -95,7 +95,8 @@ def test_write_tspline_round_trips(model, tmp_path):
     from bonecad.occ.exchange import read_step
 
     paths = export("tspline", model, tmp_path)
-    assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json", "tspline.tsm"}
+    assert {p.name for p in paths.values()} == {"tspline.step", "tspline.iges", "tspline.json", "tspline.tsm",
+                                                "tspline.iga"}
     back = read_step(paths["step"])
     solids = back.solids()
     assert len(solids) == 1 and is_valid(solids[0].wrapped)

@@ -18,7 +18,7 @@ ExportFn = Callable[[Any, Path], Path]
 
 #: the modules that register exporters
 FORMAT_MODULES = ("bonecad.export.cad", "bonecad.export.documents", "bonecad.export.meshes", "bonecad.export.report",
-                  "bonecad.export.tsm", "bonecad.export.plate")
+                  "bonecad.export.tsm", "bonecad.export.plate", "bonecad.export.fe", "bonecad.export.iga")
 
 #: (kind, format) -> exporter, in registration order
 EXPORTERS: dict[tuple[str, str], ExportFn] = {}

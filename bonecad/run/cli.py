@@ -127,8 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("reconstruct", help="mesh or CT -> NURBS and T-spline CAD models, analysis, report",
                        description="The whole pipeline: frame, contour curves, the NURBS baseline and/or the "
                        "T-spline model, their deviation/continuity/zebra analysis. Writes nurbs.step/.iges, "
-                       "tspline.step/.iges/.json/.tsm, curves.step/.iges/.json, frame.json, report.json, report.html "
-                       "and PNG figures into --out.",
+                       "tspline.step/.iges/.json/.tsm/.iga, curves.step/.iges/.json, frame.json, report.json, "
+                       "report.html and PNG figures into --out.",
                        epilog="example: bonecad reconstruct ct_folder/ --out out --model tspline")
     _add_stage(p)
     p.add_argument("--model", choices=["nurbs", "tspline", "both"], default=None,
@@ -281,6 +281,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--config", type=Path, help="TOML file overriding defaults")
     _add_logging(p)
+
+    p = sub.add_parser("fe", help="tetrahedral mesh with CT-based stiffness -> bone.msh/.vtu/.inp/.feb, fe.json",
+                       description="Mesh a model's solid with tetrahedra (gmsh), give each element its Young's "
+                       "modulus (from the CT, integrated over the element, when the input was a CT; else one "
+                       "cortical modulus), check the mesh with a linear-elastic solve (axial and torsion "
+                       "stiffness against beam theory) and write bone.msh, bone.vtu, Abaqus bone.inp, FEBio "
+                       "bone.feb and fe.json (quality, volumes, materials, stiffness) into --out.")
+    p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume "
+                   "(reconstructed first)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--model", choices=["tspline", "nurbs"], default="tspline", help="which model's solid to mesh")
+    p.add_argument("--size", type=float, metavar="MM", help="largest element edge (default: [fe] size_mm)")
+    p.add_argument("--order", type=int, choices=[1, 2], help="element order: 1 (4-node) or 2 (10-node) tetrahedra")
+    p.add_argument("--ct", type=Path, help="the bone's CT volume, for the moduli (default: the reconstruction's "
+                   "input when it was a CT)")
+    p.add_argument("--calibration", type=float, nargs=2, metavar=("SLOPE", "INTERCEPT"),
+                   help="the CT's density calibration: rho (g/cm3) = SLOPE * HU + INTERCEPT")
+    p.add_argument("--homogeneous", action="store_true", help="one cortical modulus even when a CT is known")
+    p.add_argument("--iga", action="store_true", help="also write tspline.iga (the T-spline's Bezier extraction)")
+    _add_common(p)
 
     p = sub.add_parser("demo", help="run the pipeline on the embedded phantom tibia",
                        description="Generate the synthetic phantom tibia and run every stage available on it; "
@@ -473,6 +493,17 @@ def _run(args: argparse.Namespace) -> int:
         print(f"tibia surface: {bone.triangle_count} triangles written to {args.out}")
     elif args.command == "cohort":
         return _run_cohort(args, settings)
+    elif args.command == "fe":
+        from bonecad.run.fe import fe_settings, run_fe
+
+        settings = fe_settings(settings, args.size, args.order, args.calibration)
+        s = run_fe(args.source, args.out, settings, model=args.model, ct=args.ct, homogeneous=args.homogeneous,
+                   iga=args.iga, units=args.units).summary
+        print(f"{s['elements']} tetrahedra (order {s['order']}), SICN min {s['quality']['sicn']['min']}, volume "
+              f"{100 * s['volume_mm3']['relative_difference']:+.3f} % of the solid's; {s['materials']['count']} "
+              f"materials ({s['materials']['source']}); " + "; ".join(
+                  f"{case} {k['solver']:.4g} {k['unit']} (beam {k['beam_theory']:.4g})"
+                  for case, k in s["stiffness"].items()) + f"; written to {args.out}")
     elif args.command == "demo":
         with fit_progress(args, settings.tspline.max_rounds) as progress:
             result = pipeline.run_demo(args.out, settings, progress=progress)
