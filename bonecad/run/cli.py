@@ -146,7 +146,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "of closed bodies), move each rigidly onto the template (the other side's bone mirrored "
                        "about its own sagittal plane), refine them together; write reduced.stl, reduction.json "
                        "(per fragment: role, 4x4 transform, translation, rotation, registration RMS, overlap and "
-                       "gap with its neighbours, axial extent; the fracture lines) and reduction.png into --out.")
+                       "gap with its neighbours, axial extent; the fracture lines) and reduction.png into --out.",
+                       epilog="example: bonecad reduce broken_tibia.stl --template contralateral other_tibia.stl "
+                       "--out reduced")
     p.add_argument("input", type=Path, help="mesh file of the broken bone (STL, OBJ, PLY, OFF), one body per fragment")
     p.add_argument("--template", nargs=2, metavar=("KIND", "PATH"), required=True,
                    help="'contralateral MESH': the other side's bone (mirrored here)")
@@ -287,7 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "modulus (from the CT, integrated over the element, when the input was a CT; else one "
                        "cortical modulus), check the mesh with a linear-elastic solve (axial and torsion "
                        "stiffness against beam theory) and write bone.msh, bone.vtu, Abaqus bone.inp, FEBio "
-                       "bone.feb and fe.json (quality, volumes, materials, stiffness) into --out.")
+                       "bone.feb and fe.json (quality, volumes, materials, stiffness) into --out.",
+                       epilog="example: bonecad fe out/ --out fe-out --size 2 --order 2")
     p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume "
                    "(reconstructed first)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
