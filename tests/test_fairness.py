@@ -1,0 +1,80 @@
+"""The fairness figure (bonecad.analysis.fairness, issue 47): it ranks surfaces as their zebra stripes do.
+
+A smooth bicubic surface (a bent sheet, 40 x 40 mm) gets ripples of 0.02-0.1 mm at 2-5 mm wavelength: the
+figure grows with every step of the ripple, while the share of the rippled surface within 0.25 mm of the
+smooth one does not move (every ripple is under the deviation bars)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bonecad.analysis.fairness import surface_fairness
+from bonecad.splines.surface import BSplineSurface
+
+SIZE_MM, POLE_STEP_MM = 40.0, 0.25
+
+
+def _smooth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A gently bent sheet (curvature radii 25-60 mm, like a tibia's shaft), mm."""
+    return x**2 / 50.0 + y**2 / 120.0 + 0.4 * np.sin(x / 9.0) * np.cos(y / 13.0)
+
+
+def _sheet(amplitude_mm: float = 0.0, wavelength_mm: float = 3.0, *, flat: bool = False) -> BSplineSurface:
+    """A height-field B-spline whose poles sample the sheet plus a ripple a sin(2 pi x / L) sin(2 pi y / L)
+    (poles every 0.25 mm: the cubic spline keeps most of even a 2 mm ripple)."""
+    n = int(SIZE_MM / POLE_STEP_MM) + 1
+    g = np.linspace(-SIZE_MM / 2, SIZE_MM / 2, n)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    k = 2 * np.pi / wavelength_mm
+    z = (0.0 if flat else _smooth(x, y)) + amplitude_mm * np.sin(k * x) * np.sin(k * y)
+    knots = np.concatenate([[0.0] * 3, np.linspace(0.0, 1.0, n - 2), [1.0] * 3])
+    return BSplineSurface(np.stack([x, y, z], axis=2), knots, knots)
+
+
+def _share_within(surface: BSplineSurface, mm: float) -> float:
+    """Share of the surface's points (a parameter grid) within mm of the smooth sheet (vertical distance,
+    an upper bound of the normal one)."""
+    u = np.linspace(0.0, 1.0, 201)
+    p = surface.evaluate(*np.meshgrid(u, u, indexing="ij")).points
+    return float(np.mean(np.abs(p[:, 2] - _smooth(p[:, 0], p[:, 1])) <= mm))
+
+
+@pytest.mark.parametrize("wavelength_mm", [2.0, 3.5, 5.0])
+def test_fairness_grows_with_the_ripple_while_the_share_within_tolerance_does_not_move(wavelength_mm):
+    amplitudes = [0.0, 0.02, 0.05, 0.1]
+    figures, shares = [], []
+    for a in amplitudes:
+        sheet = _sheet(a, wavelength_mm)
+        figures.append(surface_fairness([sheet], step_mm=0.25).curvature_variation)
+        shares.append(_share_within(sheet, 0.25))
+    assert all(b > 1.5 * a for a, b in zip(figures, figures[1:])), figures  # strictly and clearly growing
+    assert max(shares) - min(shares) <= 0.001 and min(shares) >= 0.999, shares
+
+
+def test_shorter_ripple_is_less_fair_at_the_same_amplitude():
+    figures = [surface_fairness([_sheet(0.05, wl)], step_mm=0.25).curvature_variation for wl in (5.0, 3.5, 2.0)]
+    assert figures[0] < figures[1] < figures[2], figures
+
+
+def test_ripple_figure_matches_its_closed_form():
+    """A ripple a sin(kx) sin(ky) on a plane: H ~ -a k^2 sin sin, |grad H|^2 averages a^2 k^6 / 2, so F is
+    a k^3 / sqrt(2) (less the cubic spline's and the differences' few per cent at this wavelength)."""
+    a, wl = 0.05, 4.0
+    k = 2 * np.pi / wl
+    figure = surface_fairness([_sheet(a, wl, flat=True)], step_mm=0.2).curvature_variation
+    assert figure == pytest.approx(a * k**3 / np.sqrt(2), rel=0.15)
+
+
+def test_smooth_sheet_is_fair_and_regions_split_the_area():
+    sheet = _sheet()
+    fair = surface_fairness([sheet], step_mm=0.5, labels=lambda p: np.where(p[:, 0] < 0, "left", "right"))
+    assert fair.curvature_variation < 0.002  # the sheet's own curvature varies by ~1e-3 /mm per mm
+    assert set(fair.regions) == {"left", "right"}
+    assert sum(fair.region_area_mm2.values()) == pytest.approx(fair.area_mm2)
+    assert fair.area_mm2 == pytest.approx(SIZE_MM**2, rel=0.05)
+    assert fair.to_dict()["units"] == "1/mm^2"
+
+
+def test_bad_step_is_refused():
+    with pytest.raises(ValueError, match="step_mm"):
+        surface_fairness([_sheet()], step_mm=0.0)
