@@ -28,6 +28,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bonecad.splines.surface import BSplineSurface
+from bonecad.splines.tspline import TSpline
+
+#: A face whose fairness is measured: a B-spline surface (its ``bounds``) or a T-spline (its whole domain).
+Surface = BSplineSurface | TSpline
 
 #: Largest grid of one face (nodes); a face larger than this at ``step_mm`` is sampled more coarsely.
 MAX_FACE_NODES = 1_500_000
@@ -69,12 +73,19 @@ class _Samples:
     gradient2: np.ndarray  # (m,) |grad H|^2, 1/mm^4
 
 
-def _grid_size(surface: BSplineSurface, step_mm: float) -> tuple[int, int]:
+def _bounds(surface: Surface) -> tuple[float, float, float, float]:
+    if isinstance(surface, TSpline):
+        return (*surface.mesh.s_range, *surface.mesh.t_range)
+    u0, u1, v0, v1 = surface.bounds
+    return float(u0), float(u1), float(v0), float(v1)
+
+
+def _grid_size(surface: Surface, step_mm: float) -> tuple[int, int]:
     """Grid nodes along u and v for about ``step_mm`` between neighbours (the longest iso-line, from a coarse
     sample), at most ``MAX_FACE_NODES`` in all."""
-    u0, u1, v0, v1 = surface.bounds
+    u0, u1, v0, v1 = _bounds(surface)
     uu, vv = np.meshgrid(np.linspace(u0, u1, 17), np.linspace(v0, v1, 17), indexing="ij")
-    p = surface.evaluate(uu, vv).points.reshape(17, 17, 3)
+    p = surface.evaluate(uu.ravel(), vv.ravel()).points.reshape(17, 17, 3)
     along_u = np.linalg.norm(np.diff(p, axis=0), axis=2).sum(axis=0).max()
     along_v = np.linalg.norm(np.diff(p, axis=1), axis=2).sum(axis=1).max()
     nu, nv = int(np.ceil(along_u / step_mm)) + 1, int(np.ceil(along_v / step_mm)) + 1
@@ -82,13 +93,13 @@ def _grid_size(surface: BSplineSurface, step_mm: float) -> tuple[int, int]:
     return max(3, int(nu / shrink)), max(3, int(nv / shrink))
 
 
-def _face_samples(surface: BSplineSurface, step_mm: float) -> _Samples:
+def _face_samples(surface: Surface, step_mm: float) -> _Samples:
     """|grad H|^2 and the area each node stands for on a parameter grid of one face (module doc)."""
-    u0, u1, v0, v1 = surface.bounds
+    u0, u1, v0, v1 = _bounds(surface)
     nu, nv = _grid_size(surface, step_mm)
     u, v = np.linspace(u0, u1, nu), np.linspace(v0, v1, nv)
     uu, vv = np.meshgrid(u, v, indexing="ij")
-    s = surface.evaluate(uu, vv, order=2)
+    s = surface.evaluate(uu.ravel(), vv.ravel(), order=2)
     su, sv, suu, suv, svv = s.derivatives
     e, f, g = (np.einsum("ij,ij->i", a, b) for a, b in ((su, su), (su, sv), (sv, sv)))
     det = e * g - f * f
@@ -98,8 +109,8 @@ def _face_samples(surface: BSplineSurface, step_mm: float) -> _Samples:
     normal = normal / np.where(ok, norm, 1.0)[:, None]
     ll, mm, nn = (np.einsum("ij,ij->i", d, normal) for d in (suu, suv, svv))
     h = np.where(ok, (e * nn - 2 * f * mm + g * ll) / (2 * np.where(ok, det, 1.0)), 0.0).reshape(nu, nv)
-    hu, hv = np.gradient(h, u, v)
-    hu, hv = hu.ravel(), hv.ravel()
+    grad_u, grad_v = np.gradient(h, u, v)
+    hu, hv = grad_u.ravel(), grad_v.ravel()
     grad2 = np.where(ok, (g * hu**2 - 2 * f * hu * hv + e * hv**2) / np.where(ok, det, 1.0), 0.0)
     # a node whose differences reach a degenerate node carries no figure
     bad = ~ok.reshape(nu, nv)
@@ -121,13 +132,14 @@ def _trapezoid(x: np.ndarray) -> np.ndarray:
     return w
 
 
-def surface_fairness(surfaces: Sequence[BSplineSurface], *, step_mm: float = 0.5,
+def surface_fairness(surfaces: Sequence[Surface], *, step_mm: float = 0.5,
                      labels: Callable[[np.ndarray], np.ndarray] | None = None) -> Fairness:
     """The fairness figure (module doc) of a model's faces.
 
-    surfaces : its faces' exact surfaces (mm); step_mm : grid spacing on them (mm); labels : optional
-    function (m, 3) points -> (m,) region names (``analysis.model.region_labels``) for the per-region
-    figures.
+    surfaces : its faces' exact surfaces (mm): B-spline surfaces over their bounds, or T-splines over their
+    whole domain (a tube's periodic seam row counts at both ends, with half weight each);
+    step_mm : grid spacing on them (mm); labels : optional function (m, 3) points -> (m,) region names
+    (``analysis.model.region_labels``) for the per-region figures.
     """
     if step_mm <= 0:
         raise ValueError(f"step_mm must be positive, got {step_mm}")

@@ -449,7 +449,7 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     if frozen is not None:
         eligible &= ~frozen(ext.s_bounds, ext.t_bounds)
     if noise_level > 0:
-        return _marked_above_noise(elem, distance, weights, tol, noise_level, eligible), halvable
+        return _marked_above_noise(elem, distance, weights, tol, noise_level, np.asarray(eligible)), halvable
     wbad = np.where(eligible, wbad, 0.0)
     order = np.argsort(-wbad, kind="stable")
     cum = np.cumsum(wbad[order])
