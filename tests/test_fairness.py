@@ -83,3 +83,24 @@ def test_smooth_sheet_is_fair_and_regions_split_the_area():
 def test_bad_step_is_refused():
     with pytest.raises(ValueError, match="step_mm"):
         surface_fairness([_sheet()], step_mm=0.0)
+
+
+def test_report_carries_the_fairness_per_model_and_on_its_card():
+    from bonecad.analysis.fairness import Fairness
+    from bonecad.analysis.model import ModelReport
+    from bonecad.export.report import build_report
+    from bonecad.export.report_page import _model_card
+
+    fair = Fairness(0.0768, {"distal": 0.12, "shaft": 0.03, "proximal": 0.15}, 45000.0,
+                    {"distal": 9000.0, "shaft": 20000.0, "proximal": 16000.0}, 0.5, 15)
+    report = build_report(input_summary={}, frame={}, timings_s={},
+                          models=[ModelReport("tspline", fairness=fair), ModelReport("nurbs")])
+    assert report["models"]["tspline"]["fairness"]["curvature_variation_per_mm2"] == 0.0768
+    assert report["models"]["tspline"]["fairness"]["units"] == "1/mm^2"
+    assert report["models"]["nurbs"]["fairness"] is None
+    card = report["summary"]["tspline"]
+    assert card["fairness"] == {"curvature_variation_per_mm2": 0.0768,
+                                "regions": {"distal": 0.12, "shaft": 0.03, "proximal": 0.15}}
+    assert report["summary"]["nurbs"]["fairness"] is None
+    page = _model_card("tspline", card)
+    assert "fairness: curvature variation" in page and "0.0768" in page
