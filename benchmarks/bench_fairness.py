@@ -36,7 +36,7 @@ from bonecad.run.pipeline import frame_and_contours, load_input  # noqa: E402
 from bonecad.settings import Settings  # noqa: E402
 from bonecad.splines.tspline.fit import initial_parameters  # noqa: E402
 from bonecad.tspline_model.model import build_tspline_model, hole_masks  # noqa: E402
-from bonecad.analysis.model import tessellation_settings  # noqa: E402
+from bonecad.analysis.model import region_labels, tessellation_settings  # noqa: E402
 from bonecad.analysis.statistics import settings_band_edges  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "tibia"
@@ -81,25 +81,27 @@ def model_kinds(stem: str) -> None:
     nurbs = build_nurbs(contours, settings=settings.nurbs)
     dev = shape_deviation(bone.vertices, bone.faces, tessellate(nurbs.shape, tessellation_settings(settings.analysis)),
                           sample_points=100_000, edges_mm=settings_band_edges(settings.analysis))
-    rows = [("NURBS", nurbs.summary()["control_points"], shape_fairness(nurbs.shape, step_mm=step).curvature_variation,
+    labels = region_labels(frame)
+    rows = [("NURBS", nurbs.summary()["control_points"], shape_fairness(nurbs.shape, step_mm=step, labels=labels),
              f"{dev.mesh_to_cad.share_within(0.25):.4f} / {dev.mesh_to_cad.stats.rms_mm:.3f} (solid)")]
     model = build_tspline_model(bone, frame, contours, settings=settings.tspline,
                                 apex_hole_radius_mm=settings.curves.apex_hole_radius_mm)
     rows.append(("T-spline (solid)", model.control_points,
-                 shape_fairness(model.shape, step_mm=step).curvature_variation,
-                 f"{tube_accuracy(model.fit)} (fit points)"))
+                 shape_fairness(model.shape, step_mm=step, labels=labels), f"{tube_accuracy(model.fit)} (fit points)"))
     rows.append(("T-spline (tube)", model.control_points,
-                 surface_fairness([model.tspline], step_mm=step).curvature_variation,
+                 surface_fairness([model.tspline], step_mm=step),
                  f"{tube_accuracy(model.fit)} (fit points)"))
     tp = model.tensor_product_fit
     if tp is not None:
         rows.append(("tensor product (tube)", tp.tspline.n_control,
-                     surface_fairness([tp.tspline], step_mm=step).curvature_variation,
+                     surface_fairness([tp.tspline], step_mm=step),
                      f"{tube_accuracy(tp)} (fit points)"))
     print(f"\n{stem} ({time.process_time() - start:.0f} s CPU, loaded machine)")
-    print(f"  {'model':24s} {'control pts':>11s} {'fairness 1/mm^2':>16s}  share within 0.25 mm / RMS mm")
+    print(f"  {'model':24s} {'control pts':>11s}  fairness 1/mm^2: RMS, median, regions (RMS)   "
+          "share within 0.25 mm / RMS mm")
     for name, cp, fair, acc in rows:
-        print(f"  {name:24s} {cp:11d} {fair:16.5f}  {acc}")
+        regions = " ".join(f"{k} {v:.4f}" for k, v in fair.regions.items())
+        print(f"  {name:24s} {cp:11d}  {fair.curvature_variation:.5f} {fair.typical:.5f} {regions}  {acc}")
 
 
 def noise_stop(stem: str) -> None:
@@ -118,10 +120,10 @@ def noise_stop(stem: str) -> None:
         inside = samples[~np.logical_or(*holes)]
         d_model = initial_parameters(model.tspline, frame.to_bone(inside))[2]
         d_mesh = TriangleLocator(noisy.vertices, noisy.faces).query(inside).distance
-        fair = shape_fairness(model.shape, step_mm=settings.analysis.fairness_step_mm).curvature_variation
+        fair = shape_fairness(model.shape, step_mm=settings.analysis.fairness_step_mm)
         print(f"  a {rms:4.2f} L {wavelength:4.1f}: {model.control_points:6d} cp, "
               f"RMS {np.sqrt(np.mean(d_model**2)):.3f} / {np.sqrt(np.mean(d_mesh**2)):.3f}, "
-              f"fairness {fair:.5f}, level {model.noise_level_mm:.3f}: "
+              f"fairness {fair.curvature_variation:.5f} (median {fair.typical:.5f}), level {model.noise_level_mm:.3f}: "
               f"{model.fit.stopped[:60]}", flush=True)
 
 

@@ -49,6 +49,8 @@ def test_fairness_grows_with_the_ripple_while_the_share_within_tolerance_does_no
         figures.append(surface_fairness([sheet], step_mm=0.25).curvature_variation)
         shares.append(_share_within(sheet, 0.25))
     assert all(b > 1.5 * a for a, b in zip(figures, figures[1:])), figures  # strictly and clearly growing
+    typical = [surface_fairness([_sheet(a, wavelength_mm)], step_mm=0.25).typical for a in amplitudes]
+    assert all(b > 1.5 * a for a, b in zip(typical, typical[1:])), typical  # the median too: the ripple is everywhere
     assert max(shares) - min(shares) <= 0.001 and min(shares) >= 0.999, shares
 
 
@@ -66,6 +68,18 @@ def test_ripple_figure_matches_its_closed_form():
     assert figure == pytest.approx(a * k**3 / np.sqrt(2), rel=0.15)
 
 
+def test_one_sharp_spot_moves_the_energy_not_the_median():
+    """A bump of 0.3 mm and 1.5 mm radius on 0.1 % of the sheet: F grows several times, the median does not."""
+    smooth, spot = _sheet(), _sheet()
+    x, y = spot.poles[..., 0], spot.poles[..., 1]
+    poles = spot.poles.copy()
+    poles[..., 2] += 0.3 * np.exp(-0.5 * ((x - 5.0) ** 2 + (y + 3.0) ** 2) / 1.5**2)
+    spot = BSplineSurface(poles, spot.knots_u, spot.knots_v)
+    a, b = (surface_fairness([s], step_mm=0.25) for s in (smooth, spot))
+    assert b.curvature_variation > 3 * a.curvature_variation
+    assert b.typical == pytest.approx(a.typical, rel=0.1)
+
+
 def test_smooth_sheet_is_fair_and_regions_split_the_area():
     sheet = _sheet()
     fair = surface_fairness([sheet], step_mm=0.5, labels=lambda p: np.where(p[:, 0] < 0, "left", "right"))
@@ -75,7 +89,8 @@ def test_smooth_sheet_is_fair_and_regions_split_the_area():
     u = np.linspace(0.0, 1.0, 301)
     p = sheet.evaluate(*np.meshgrid(u, u, indexing="ij")).points.reshape(301, 301, 3)
     a, b, c, d = p[:-1, :-1], p[1:, :-1], p[1:, 1:], p[:-1, 1:]
-    area = 0.5 * (np.linalg.norm(np.cross(b - a, c - a), axis=-1) + np.linalg.norm(np.cross(c - a, d - a), axis=-1)).sum()
+    area = 0.5 * (np.linalg.norm(np.cross(b - a, c - a), axis=-1)
+                  + np.linalg.norm(np.cross(c - a, d - a), axis=-1)).sum()
     assert fair.area_mm2 == pytest.approx(area, rel=1e-3)  # the grid's area element integrates the surface
     assert fair.to_dict()["units"] == "1/mm^2"
 
@@ -99,7 +114,7 @@ def test_report_carries_the_fairness_per_model_and_on_its_card():
     assert report["models"]["tspline"]["fairness"]["units"] == "1/mm^2"
     assert report["models"]["nurbs"]["fairness"] is None
     card = report["summary"]["tspline"]
-    assert card["fairness"] == {"curvature_variation_per_mm2": 0.0768,
+    assert card["fairness"] == {"curvature_variation_per_mm2": 0.0768, "typical_per_mm2": 0.0,
                                 "regions": {"distal": 0.12, "shaft": 0.03, "proximal": 0.15}}
     assert report["summary"]["nurbs"]["fairness"] is None
     page = _model_card("tspline", card)

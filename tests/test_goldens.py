@@ -92,7 +92,8 @@ def _assert_fairness(shape, frame, name: str) -> None:
     from bonecad.analysis.model import model_fairness
 
     fairness = model_fairness(shape, frame, SETTINGS.analysis)
-    assert_fairness_matches({"overall": fairness.curvature_variation, **fairness.regions}, name)
+    assert_fairness_matches({"overall": fairness.curvature_variation, **fairness.regions,
+                             "median": fairness.typical}, name)
 
 
 def test_perturbed_model_is_caught():

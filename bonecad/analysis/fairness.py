@@ -44,6 +44,10 @@ class Fairness:
     curvature_variation : F, the RMS of |grad H| over the surface (1/mm^2; lower is fairer);
     regions : the same figure per region (name -> 1/mm^2); area_mm2 : the surface area measured (and per
     region in region_area_mm2); step_mm : the grid spacing; faces : faces evaluated.
+    typical, typical_regions : the area-weighted median of |grad H| (1/mm^2), overall and per region: what
+    half the surface exceeds. F is an energy, so one sharp spot the model follows (a foramen, a crease of
+    the mesh) can hold most of it (LHDL's T-spline: 82 % in 0.1 % of its area); the median is not moved by
+    such spots and tells ripple spread over the surface.
     """
 
     curvature_variation: float
@@ -52,6 +56,8 @@ class Fairness:
     region_area_mm2: dict[str, float] = field(default_factory=dict)
     step_mm: float = 0.0
     faces: int = 0
+    typical: float = 0.0
+    typical_regions: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return {
@@ -59,6 +65,8 @@ class Fairness:
             "units": "1/mm^2",
             "curvature_variation_per_mm2": round(self.curvature_variation, 6),
             "regions": {k: round(v, 6) for k, v in self.regions.items()},
+            "typical_per_mm2": round(self.typical, 6),
+            "typical_regions": {k: round(v, 6) for k, v in self.typical_regions.items()},
             "area_mm2": round(self.area_mm2, 1),
             "region_area_mm2": {k: round(v, 1) for k, v in self.region_area_mm2.items()},
             "step_mm": self.step_mm,
@@ -154,6 +162,7 @@ def surface_fairness(surfaces: Sequence[Surface], *, step_mm: float = 0.5,
         raise ValueError("surface_fairness: the surfaces have no area")
     regions: dict[str, float] = {}
     region_area: dict[str, float] = {}
+    typical: dict[str, float] = {}
     if labels is not None:
         names = np.asarray(labels(points))
         for name in sorted(set(names.tolist())):
@@ -162,8 +171,15 @@ def surface_fairness(surfaces: Sequence[Surface], *, step_mm: float = 0.5,
             if w > 0:
                 regions[str(name)] = float(np.sqrt(np.sum(weight[sel] * grad2[sel]) / w))
                 region_area[str(name)] = w
+                typical[str(name)] = _weighted_median(np.sqrt(grad2[sel]), weight[sel])
     return Fairness(float(np.sqrt(np.sum(weight * grad2) / area)), regions, area, region_area, step_mm,
-                    len(surfaces))
+                    len(surfaces), _weighted_median(np.sqrt(grad2), weight), typical)
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    order = np.argsort(values)
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
 
 
 def shape_fairness(shape, *, step_mm: float = 0.5,

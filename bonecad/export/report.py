@@ -218,10 +218,11 @@ def model_summary(model: ModelReport, tolerances: Tolerances | None, out_dir: Pa
 
 def fairness_card(model: ModelReport) -> dict[str, Any]:
     """The summary card's fairness entry: the RMS of the gradient of mean curvature (1/mm^2) overall and
-    per region (``analysis.fairness``; None when not measured)."""
+    per region, and its area-weighted median (``analysis.fairness``; None when not measured)."""
     f = model.fairness
     return {"fairness": None if f is None else {"curvature_variation_per_mm2": round(f.curvature_variation, 6),
-                                                "regions": {k: round(v, 6) for k, v in f.regions.items()}}}
+                                                "regions": {k: round(v, 6) for k, v in f.regions.items()},
+                                                "typical_per_mm2": round(f.typical, 6)}}
 
 
 def contour_rows(contours: ContourSet) -> list[dict[str, Any]]:

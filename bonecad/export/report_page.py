@@ -186,7 +186,8 @@ def _fairness_table(fairness: dict[str, Any] | None) -> str:
     if not fairness:
         return ""
     return table([{"fairness: curvature variation, 1/mm^2 (lower is fairer)": fairness["curvature_variation_per_mm2"],
-                   **{f"{k}": v for k, v in fairness["regions"].items()}}])
+                   **{f"{k}": v for k, v in fairness["regions"].items()},
+                   "median over the surface": fairness.get("typical_per_mm2")}])
 
 
 def _deviation_tables(dev: dict[str, Any]) -> str:
