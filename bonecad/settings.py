@@ -213,6 +213,7 @@ class TSplineSettings:
     noise_level_quantile: float
     noise_level_stride: int
     rough_noise_level_mm: float
+    rough_mark_factor: float
     compare_tensor_product: bool
     face_layout: FaceLayout
     panel_face_cost: float
@@ -282,6 +283,7 @@ class AnalysisSettings:
     continuity_curvature_radius_ref_mm: float
     view_max_triangles: int
     figure_height_px: int
+    fairness_step_mm: float
 
     def __post_init__(self) -> None:
         width, limit = self.band_width_mm, self.band_limit_mm

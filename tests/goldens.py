@@ -118,3 +118,26 @@ def assert_histogram_matches(hist: Histogram, name: str, **kwargs) -> GoldenComp
             + f"\nIf the change is intended: {UPDATE_ENV}=1 pytest ..."
         )
     return result
+
+
+def assert_fairness_matches(figures: dict[str, float], name: str, *, rel_tolerance: float = 0.05,
+                            golden_dir: str | Path | None = None, update: bool | None = None) -> None:
+    """The fairness figures (name -> 1/mm^2: overall and per region, ``analysis.fairness``) against golden
+    ``name`` (JSON ``{"fairness": {...}}``), each within ``rel_tolerance`` of its golden value; in update
+    mode (``BONECAD_UPDATE_GOLDENS``) the golden is rewritten first."""
+    path = golden_path(name, golden_dir)
+    if update_requested() if update is None else update:
+        with staged_file(path) as tmp:
+            tmp.write_text(json.dumps({"name": name, "units": "1/mm^2", "fairness": figures}, indent=1) + "\n")
+        return
+    try:
+        golden = json.loads(path.read_text())["fairness"]
+    except FileNotFoundError:
+        raise InputError(f"no golden '{name}' (expected {path}); create it with {UPDATE_ENV}=1", path) from None
+    if set(golden) != set(figures):
+        raise GoldenMismatch(f"fairness golden '{name}' has other entries ({sorted(golden)}) than {sorted(figures)}")
+    bad = [f"  {k}: {golden[k]:.6g} -> {v:.6g} /mm^2" for k, v in figures.items()
+           if abs(v - golden[k]) > rel_tolerance * abs(golden[k])]
+    if bad:
+        raise GoldenMismatch(f"fairness '{name}' moved by more than {100 * rel_tolerance:.0f} %:\n" + "\n".join(bad)
+                             + f"\nIf the change is intended: {UPDATE_ENV}=1 pytest ...")

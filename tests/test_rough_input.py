@@ -48,9 +48,10 @@ def test_rough_mesh_gives_a_valid_closed_tspline_no_farther_from_the_clean_tibia
     rough_share = float(np.mean(TriangleLocator(rough.vertices, rough.faces).query(samples).distance <= 0.25))
     deviation = shape_deviation(rough.clean_vertices, rough.clean_faces, tessellate(solids[0].wrapped, TESSELLATION),
                                 sample_points=100_000, edges_mm=BANDS_MM)
-    # measured: rough mesh 0.781, T-spline 0.785 (stopped at the noise: 0.784). The bumps are smooth at the
-    # fit's scale, so a fit stopped earlier is farther from the clean tibia, not nearer (round 4: 0.778;
-    # benchmarks/bench_noise.py)
+    # measured: rough mesh 0.781, T-spline 0.785 when the stop waited for the share (2387 control points);
+    # stopped at the first round at the noise level with rough_mark_factor's small rounds, 1544 control points,
+    # about 0.787 (0.780 at 1929 with rounds marking 60 % of the residual above the noise: a round past the
+    # bone's scale follows the bumps). The bumps are smooth at the fit's scale (benchmarks/bench_noise.py)
     assert deviation.mesh_to_cad.share_within(0.25) >= rough_share
 
 
@@ -62,8 +63,9 @@ def test_rough_mesh_fit_stops_at_the_noise_and_says_so(rough_run):
     info = report["models"]["tspline"]["info"]
     assert info["noise_level_mm"] >= SETTINGS.tspline.rough_noise_level_mm  # measured 0.149 mm
     assert info["fit_stopped"].startswith("stopped at the data's noise"), info["fit_stopped"]
-    # chasing the bumps' peaks below 1 mm took 2418 control points; stopped at the noise, 2387
-    assert info["fit"]["control_points"] < 2418
+    # chasing the bumps' peaks below 1 mm took 2418 control points; stopped at the share and the noise, 2387;
+    # at the first round at the noise level (issue 48), 1544: under the clean TLEM2 tibia's 2013
+    assert info["fit"]["control_points"] < 2013
 
 
 def test_contour_curves_of_a_coarse_rough_mesh_stay_on_their_sections(tmp_path):

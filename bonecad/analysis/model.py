@@ -14,6 +14,7 @@ import numpy as np
 
 from bonecad.analysis.deviation import DeviationResult, shape_deviation
 from bonecad.analysis.folds import FoldCheck, shape_folds
+from bonecad.analysis.fairness import Fairness, shape_fairness
 from bonecad.analysis.statistics import settings_band_edges
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.mesh.bone_mesh import BoneMesh
@@ -41,6 +42,7 @@ class ModelReport:
     knots: list[KnotContinuity] | None = None
     figures: dict[str, Path] = field(default_factory=dict)
     folds: FoldCheck | None = None
+    fairness: Fairness | None = None
 
 
 def region_labels(frame: AnatomicalFrame):
@@ -113,3 +115,11 @@ def model_continuity(shape, tess: Tessellation, face_names, settings: AnalysisSe
     seams = seam_continuity(shape, tessellation=tess, face_names=face_names,
                             tolerances=continuity_tolerances(settings))
     return seams, knot_continuity(shape), shape_folds(shape, face_names)
+
+
+def model_fairness(shape, frame: AnatomicalFrame, settings: AnalysisSettings) -> Fairness:
+    """The fairness figure of a model's exact faces, overall and per region (``analysis.fairness``)."""
+    fairness = shape_fairness(shape, step_mm=settings.fairness_step_mm, labels=region_labels(frame))
+    log.info("fairness: curvature variation %.4g /mm^2 (%s)", fairness.curvature_variation,
+             ", ".join(f"{k} {v:.4g}" for k, v in fairness.regions.items()))
+    return fairness

@@ -227,6 +227,15 @@ def model_summary(model: ModelReport, tolerances: Tolerances | None, out_dir: Pa
     return card
 
 
+def fairness_card(model: ModelReport) -> dict[str, Any]:
+    """The summary card's fairness entry: the RMS of the gradient of mean curvature (1/mm^2) overall and
+    per region, and its area-weighted median (``analysis.fairness``; None when not measured)."""
+    f = model.fairness
+    return {"fairness": None if f is None else {"curvature_variation_per_mm2": round(f.curvature_variation, 6),
+                                                "regions": {k: round(v, 6) for k, v in f.regions.items()},
+                                                "typical_per_mm2": round(f.typical, 6)}}
+
+
 def contour_rows(contours: ContourSet) -> list[dict[str, Any]]:
     """Per region: curves, control points per curve, tolerance and achieved deviation (mm), repairs."""
     rows = []
@@ -260,6 +269,7 @@ def build_report(
             "continuity": m.continuity.to_dict() if m.continuity else None,
             "knots": [k.to_dict() for k in m.knots] if m.knots is not None else None,
             "figures": {k: Path(v).name for k, v in m.figures.items()},
+            "fairness": m.fairness.to_dict() if m.fairness else None,
         }
     return _plain(
         {
@@ -271,7 +281,7 @@ def build_report(
             "figures": {k: Path(v).name for k, v in (figures or {}).items()},
             "comparison": comparison_rows(models),
             "tolerances": tolerances.to_dict() if tolerances else None,
-            "summary": {m.name: model_summary(m, tolerances, out_dir) for m in models},
+            "summary": {m.name: {**model_summary(m, tolerances, out_dir), **fairness_card(m)} for m in models},
             "contours": contour_rows(contours) if contours is not None else None,
             "morphometry": morphometry,
         }

@@ -177,7 +177,17 @@ def _model_card(name: str, card: dict[str, Any]) -> str:
         f"<p class='reason'>{html.escape(card['reason'])}</p>",
         table([{"faces": card["faces"], "control points (caps included)": card["control_points"]}]),
         table(checks) if checks else "", table(within) if within else "", table(both) if both else "",
-        table(seams) if seams else "", table(files) if files else "", "</div>"])
+        table(seams) if seams else "", _fairness_table(card.get("fairness")), table(files) if files else "",
+        "</div>"])
+
+
+def _fairness_table(fairness: dict[str, Any] | None) -> str:
+    """The card's fairness row: the RMS of the gradient of mean curvature, overall and per region."""
+    if not fairness:
+        return ""
+    return table([{"fairness: curvature variation, 1/mm^2 (lower is fairer)": fairness["curvature_variation_per_mm2"],
+                   **{f"{k}": v for k, v in fairness["regions"].items()},
+                   "median over the surface": fairness.get("typical_per_mm2")}])
 
 
 def _deviation_tables(dev: dict[str, Any]) -> str:

@@ -30,7 +30,7 @@ from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
 
-from bonecad.analysis.model import ModelReport, model_continuity, model_deviation, tessellate_model
+from bonecad.analysis.model import ModelReport, model_continuity, model_deviation, model_fairness, tessellate_model
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.anatomy.morphometry import measure_tibia
 from bonecad.contours.curves import ContourSet, bone_coordinates, contour_curves
@@ -46,7 +46,7 @@ from bonecad.mesh.working import first_pass_target, halves_simplified, with_work
 from bonecad.run.bones import bone_frame, bone_settings, kept_body, named_bone
 from bonecad.run.executor import (Executor, InProcess, executor_for, freed_memory_reused, helper_thread,
                                    huge_pages)
-from bonecad.settings import MeshSettings, Settings, load_profile
+from bonecad.settings import AnalysisSettings, MeshSettings, Settings, load_profile
 from bonecad.splines.tspline.fit import FitStats
 from bonecad.staging import staged_file, staged_output
 
@@ -432,6 +432,7 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     view_frame = frame.axes.T  # columns: lateral, anterior, proximal
     tess = tessellate_model(model.shape, settings.analysis)
     side = ex.submit(zebra_and_continuity, name, model, tess, out_dir, view_frame, settings)
+    fairness = ex.submit(shape_fairness_of, model, frame, settings.analysis)
     view = ex.submit(model_view, name, tess.vertices, tess.triangles, tess.triangle_face, bone.work.locator,
                      settings.analysis.view_max_triangles)
     deviation = model_deviation(tess, bone, frame, settings.analysis)
@@ -443,8 +444,13 @@ def analyse(name: str, model, bone: BoneMesh, frame: AnatomicalFrame, out_dir: P
     zebra, (continuity, knots, folds) = side.result()
     figures = {"deviation": colour_map.result(), "zebra": zebra}
     report = ModelReport(name=name, info=info, deviation=deviation, continuity=continuity, knots=knots,
-                         folds=folds, figures=figures)
+                         folds=folds, figures=figures, fairness=fairness.result())
     return report, view.result()
+
+
+def shape_fairness_of(model, frame: AnatomicalFrame, settings: AnalysisSettings):
+    """The fairness figure of a model's solid (a background job: the model pickles, the labels do not)."""
+    return model_fairness(model.shape, frame, settings)
 
 
 def zebra_and_continuity(name: str, model, tess, out_dir: Path, view_frame: np.ndarray, settings: Settings):

@@ -144,6 +144,7 @@ def tolerances(settings: TSplineSettings) -> FitTolerances:
         noise_factor=settings.noise_factor,
         split_anisotropy=settings.split_anisotropy,
         mark_deficit_factor=settings.mark_deficit_factor,
+        noise_mark_factor=settings.rough_mark_factor,
     )
 
 
@@ -287,7 +288,8 @@ def build_tspline_model(
         noise = mesh_noise(bone, frame, st)
     local = noise.local_mm[keep]
     level = noise.level_mm
-    rough = level if level >= st.rough_noise_level_mm else 0.0
+    # a voxel staircase has its own noise floor and stop (its steps, ``local_noise_mm(voxel_mm=...)``)
+    rough = level if level >= st.rough_noise_level_mm and not voxel else 0.0
     if rough:
         log.info("the mesh is rough (noise level %.3f mm): the fit stops at its noise", level)
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",

@@ -73,6 +73,10 @@ class FitTolerances:
         holds with those points counted as fitted, only points beyond
         ``max_deviation_mm`` ask for more, and where they lie in elements at
         the size limit the fit stops at the noise (and says so).
+    noise_mark_factor : on rough data (``fit_adaptive(noise_level=...)``) each round marks the fewest
+        elements holding this many times the squared residual the fit still has above the noise level
+        (mm^2 x area; see ``_marked_elements``): small steps towards the noise stop, which ends the fit
+        at the first round whose RMS residual is at the noise level.
     """
 
     share_within: tuple[float, float]
@@ -85,6 +89,7 @@ class FitTolerances:
     noise_factor: float
     split_anisotropy: float
     mark_deficit_factor: float
+    noise_mark_factor: float = 0.6
 
 
 @dataclass(frozen=True)
@@ -428,7 +433,8 @@ def element_sizes_mm(ts: TSpline) -> np.ndarray:
 
 
 def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, frozen=None,
-                     stalled: np.ndarray | None = None, share_held: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                     stalled: np.ndarray | None = None, share_held: bool = False,
+                     noise_level: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Elements to refine: Doerfler marking of the weight beyond the tolerance.
 
     elem : (n,) element of each point. Elements are ranked by the weight
@@ -443,6 +449,12 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     data's noise, see ``FitTolerances.noise_factor``) count for nothing;
     ``share_held`` (the share holds up to the data's noise): only the points
     beyond the maximum deviation ask for more.
+    noise_level : a rough mesh's noise level (mm; 0: not rough). Its fit stops once the RMS residual is
+    at that level, so the elements are ranked instead by their squared residual above it (sum of
+    w (d^2 - level^2) over their points beyond it) and the fewest holding ``mark_fraction`` of that, or
+    only ``noise_mark_factor`` times the squared residual still above the level over the whole
+    surface (sum of w d^2 - level^2 sum of w), are marked: the last round does not overshoot into the
+    noise; points beyond the maximum deviation ask for nothing more (the noise stop reports them).
     Returns (marked element indices, (n_e, 2) bool: which directions may be halved).
     """
     ext = ts.extraction
@@ -456,6 +468,8 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
     eligible = halvable.any(axis=1)
     if frozen is not None:
         eligible &= ~frozen(ext.s_bounds, ext.t_bounds)
+    if noise_level > 0:
+        return _marked_above_noise(elem, distance, weights, tol, noise_level, np.asarray(eligible)), halvable
     wbad = np.where(eligible, wbad, 0.0)
     order = np.argsort(-wbad, kind="stable")
     cum = np.cumsum(wbad[order])
@@ -470,6 +484,21 @@ def _marked_elements(ts: TSpline, elem, distance, weights, tol: FitTolerances, f
         marked[order[:k]] = True
     marked |= worst > tol.max_deviation_mm
     return np.flatnonzero(marked & eligible & ((wbad > 0) | (worst > tol.max_deviation_mm))), halvable
+
+
+def _marked_above_noise(elem, distance, weights, tol: FitTolerances, noise_level: float,
+                        eligible: np.ndarray) -> np.ndarray:
+    """Rough data: the fewest eligible elements holding the squared residual above the noise level that the
+    fit still has to lose (``_marked_elements``)."""
+    excess = weights * np.maximum(distance**2 - noise_level**2, 0.0)
+    energy = np.where(eligible, np.bincount(elem, excess, minlength=len(eligible)), 0.0)
+    deficit = float(np.sum(weights * distance**2) - noise_level**2 * weights.sum())
+    order = np.argsort(-energy, kind="stable")
+    cum = np.cumsum(energy[order])
+    if cum[-1] <= 0 or deficit <= 0:
+        return np.zeros(0, dtype=np.int64)
+    k = int(np.searchsorted(cum, min(tol.mark_fraction * cum[-1], tol.noise_mark_factor * deficit))) + 1
+    return np.sort(order[:k][energy[order[:k]] > 0])
 
 
 def _marked_adjacency(ext: BezierExtraction, marked: np.ndarray) -> sp.csr_matrix:
@@ -552,6 +581,19 @@ def _noise_note(distance: np.ndarray, weights: np.ndarray, stalled: np.ndarray, 
     """How much of the surface the noise excuses, for the fit's stop reason."""
     return (f"{_share(weights, stalled & (distance > tol.share_within[1])):.2%} of the surface lies beyond "
             f"{tol.share_within[1]} mm but within {tol.noise_factor} x the local noise")
+
+
+def _noise_stop(stats: FitStats, dist: np.ndarray, noise_level: float, tol: FitTolerances) -> str:
+    """The stop reason of a rough mesh's fit once its RMS residual is at the data's noise level."""
+    beyond = int(np.sum(dist > tol.max_deviation_mm))
+    held = [f"{stats.share_within:.1%} within {tol.share_within[1]} mm"
+            + ("" if stats.share_within >= tol.share_within[0] else f" (target {tol.share_within[0]:.0%})")]
+    if beyond:
+        held.append(f"{beyond} point{'s' if beyond != 1 else ''} beyond {tol.max_deviation_mm} mm (up to "
+                    f"{dist.max():.2f} mm)")
+    return (f"stopped at the data's noise: the RMS residual ({stats.rms_mm:.3f} mm) is at the data's noise level "
+            f"({noise_level:.3f} mm), and a closer fit would follow the noise, not the bone; "
+            + "; ".join(held) + " left as the noise's")
 
 
 def _share(weights: np.ndarray, mask: np.ndarray) -> float:
@@ -646,13 +688,8 @@ def fit_adaptive(
             progress(round_, stats)
         if stats.meets(tol):
             return FitResult(ts, s, t, dist, stats, history, True, "tolerances met", _folds(ts))
-        if noise_level > 0 and stats.share_within >= tol.share_within[0] and stats.rms_mm <= min(tol.rms_mm,
-                                                                                                   noise_level):
-            beyond = int(np.sum(dist > tol.max_deviation_mm))
-            stopped = (f"stopped at the data's noise: the share and the RMS hold, and the RMS residual "
-                       f"({stats.rms_mm:.3f} mm) is at the data's noise level ({noise_level:.3f} mm); "
-                       f"{beyond} point{'s' if beyond != 1 else ''} beyond {tol.max_deviation_mm} mm (up to "
-                       f"{dist.max():.2f} mm) taken for noise, not followed")
+        if noise_level > 0 and stats.rms_mm <= noise_level:
+            stopped = _noise_stop(stats, dist, noise_level, tol)
             break
         stalled = None if noise_mm is None else dist <= noise_mm
         if stalled is not None and _meets_up_to_noise(dist, w, stalled, tol):
@@ -664,7 +701,7 @@ def fit_adaptive(
             break
         elem, u, v = ts.extraction.locate(s, t)
         share_held = stalled is not None and _share_up_to_noise(dist, w, stalled, tol)
-        marked, halvable = _marked_elements(ts, elem, dist, w, tol, frozen, stalled, share_held)
+        marked, halvable = _marked_elements(ts, elem, dist, w, tol, frozen, stalled, share_held, noise_level)
         if marked.size == 0 and stalled is not None and share_held:
             stopped = (f"tolerances met up to the data's noise: {_noise_note(dist, w, stalled, tol)}; the "
                        f"{int(np.sum(dist > tol.max_deviation_mm))} points beyond {tol.max_deviation_mm} mm (up to "
