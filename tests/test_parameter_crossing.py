@@ -12,15 +12,16 @@ from bonecad.tspline_model.model import MeshDataHook
 from bonecad.tspline_model.skinning import turned_over_triangles
 
 N = 12  # grid points around (s, period N) and along (t)
+T0 = 20.0  # t of the first row: clear of the apex ring (t = 0), where triangles are not judged
 
 
 def _cylinder() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Points of a cylinder (radius N / 2 pi, so s and t are both mm), their (s, t) and triangles whose
     normals point outwards."""
     s, t = np.meshgrid(np.arange(N, dtype=float), np.arange(N, dtype=float), indexing="ij")
-    s, t = s.ravel(), t.ravel()
+    s, t = s.ravel(), t.ravel() + T0
     r = N / (2 * np.pi)
-    points = np.column_stack([r * np.cos(s / r), r * np.sin(s / r), t])
+    points = np.column_stack([r * np.cos(s / r), r * np.sin(s / r), t - T0])
     idx = np.arange(N * N).reshape(N, N)
     quads = [(idx[i, j], idx[(i + 1) % N, j], idx[(i + 1) % N, j + 1], idx[i, j + 1])
              for i in range(N) for j in range(N - 1)]
@@ -30,21 +31,21 @@ def _cylinder() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 def _surface(points: np.ndarray, s: np.ndarray, t: np.ndarray) -> TSpline:
     """The cylinder fitted on a coarse T-mesh."""
-    mesh = TMesh.grid(np.arange(0.0, N, 3.0), np.arange(0.0, 19.0, 3.0), s_period=float(N))
+    mesh = TMesh.grid(np.arange(0.0, N, 3.0), np.arange(T0, T0 + 19.0, 3.0), s_period=float(N))
     blank = TSpline(mesh, np.zeros((len(mesh.anchors), 3)), np.ones(len(mesh.anchors)))
     return solve_control_points(blank, s, t, points, fairness=1e-4)
 
 
 def test_a_point_pushed_past_its_neighbour_is_left_out_and_put_back_between_its_neighbours():
     points, s, t, triangles = _cylinder()
-    hook = MeshDataHook(points, np.ones(len(points)), triangles, float(N))
+    hook = MeshDataHook(points, np.ones(len(points)), triangles, float(N), 400.0)
     ts = _surface(points, s, t)
     left_out, extra = hook(ts, s, t)
     assert not turned_over_triangles(s, t, triangles, float(N)).any()  # across the periodic seam too
     assert not left_out.any() and extra is None
     k = 3 * N + 5  # s = 3, t = 5, pushed beyond the t = 6 row
     moved = t.copy()
-    moved[k] = 6.6
+    moved[k] = T0 + 6.6
     assert turned_over_triangles(s, moved, triangles, float(N)).any()
     left_out, extra = hook(ts, s, moved)
     assert left_out[k] and 3 < left_out.sum() < 30  # the point, its triangles' corners and their neighbours
@@ -52,18 +53,19 @@ def test_a_point_pushed_past_its_neighbour_is_left_out_and_put_back_between_its_
     p, es, et, _ = extra
     mine = np.flatnonzero(np.all(p == points[k], axis=1))
     assert len(mine) == 1
-    assert np.isclose(es[mine[0]], 3.0, atol=1e-9) and np.isclose(et[mine[0]], 5.0, atol=0.05)
+    assert np.isclose(es[mine[0]], 3.0, atol=1e-9) and np.isclose(et[mine[0]], T0 + 5.0, atol=0.05)
 
 
 def test_a_triangle_stretched_over_the_domain_is_sampled_inside():
     points, s, t, triangles = _cylinder()
-    hook = MeshDataHook(points, np.ones(len(points)), triangles, float(N))
+    hook = MeshDataHook(points, np.ones(len(points)), triangles, float(N), 400.0)
     stretched = t.copy()
-    stretched[t >= 6] += 6.0  # a 6 mm gap in t between the rows t = 5 and t = 6: no point maps into it
+    stretched[t >= T0 + 6] += 6.0  # a 6 mm gap in t between the rows t = 5 and t = 6: no point maps into it
     left_out, extra = hook(_surface(points, s, t), s, stretched)
     assert not left_out.any() and extra is not None
     p, es, et, w = extra
-    assert ((et >= 5.0) & (et <= 12.0)).all()  # in the gap (its rows' edges included)
-    assert np.sum((et > 5.5) & (et < 11.5)) >= 2 * N  # inside it, from every triangle across it
-    assert np.allclose(p[:, 2], 5 + (et - 5) / 7)  # on the facet, at the same barycentric parameters
+    gap = et - T0
+    assert ((gap >= 5.0) & (gap <= 12.0)).all()  # in the gap (its rows' edges included)
+    assert np.sum((gap > 5.5) & (gap < 11.5)) >= 2 * N  # inside it, from every triangle across it
+    assert np.allclose(p[:, 2], 5 + (gap - 5) / 7)  # on the facet, at the same barycentric parameters
     assert (w > 0).all()

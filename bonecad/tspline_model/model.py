@@ -40,10 +40,10 @@ from bonecad.settings import TSplineSettings
 from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
-from bonecad.splines.tspline.fit import (FitResult, FitStats, FitTolerances, fit_adaptive, initial_parameters,
-                                         local_noise_mm, noise_level_mm)
-from bonecad.tspline_model.skinning import (Parameterisation, initial_mesh, parameterisation, skin,
-                                            turned_over_triangles)
+from bonecad.splines.folds import FOLD_TURN_DEG
+from bonecad.splines.tspline.fit import (FitResult, FitStats, FitTolerances, element_turns_deg, fit_adaptive,
+                                         initial_parameters, local_noise_mm, noise_level_mm)
+from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger(__name__)
 
@@ -173,11 +173,19 @@ def fit_mesh(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings
 _STRETCHED_TRIANGLE = 4.0
 #: At most this many subdivisions of a stretched triangle's sides (its samples: (k + 1)(k + 2)/2 - 3).
 _MAX_TRIANGLE_SPLITS = 12
+#: A triangle whose corners' s differ by more than this share of the period lies about an apex ring.
+_POLAR_S_SHARE = 0.125
+#: ... or lies within this distance (mm of t) of an apex ring.
+_RING_MARGIN_MM = 8.0
+#: Crossing parameters are put right within this distance (mm of s and t) of a folded element.
+_FOLD_REACH_MM = 5.0
 
 
 class MeshDataHook:
     """The T-spline fit's ``data_hook`` on a mesh (issue 45, docs/guides/femur-folds.md): the fit's points
     (n, 3), their area weights (n,) and the ``triangles`` (m, 3) joining them.
+
+    period : s's period; t_end : the t of the proximal apex ring (mm).
 
     The first parameters are the points' closest points on the skinned surface, which is smooth and coarse:
     it spans a deep concavity (the femur's trochanteric fossa) and its s-lines crowd where the bone comes
@@ -190,8 +198,9 @@ class MeshDataHook:
     barycentric parameters), so that no part of the domain is bare.
     """
 
-    def __init__(self, points: np.ndarray, weights: np.ndarray, triangles: np.ndarray, period: float):
-        self.points, self.weights, self.triangles, self.period = points, weights, triangles, period
+    def __init__(self, points: np.ndarray, weights: np.ndarray, triangles: np.ndarray, period: float, t_end: float):
+        self.points, self.weights, self.triangles, self.period, self.t_end = points, weights, triangles, period, t_end
+        self.fold_boxes: list[tuple[float, float, float, float]] = []  # (s middle, s half width, t low, t high)
         n = len(points)
         i, j = triangles[:, [0, 1, 2, 1, 2, 0]].ravel(), triangles[:, [1, 2, 0, 0, 1, 2]].ravel()
         self.adjacency = sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
@@ -202,6 +211,21 @@ class MeshDataHook:
         self.normals = np.zeros_like(points)
         for k in range(3):
             np.add.at(self.normals, triangles[:, k], cross)
+
+    def _near_folds(self, ts: TSpline, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(n,) bool: points whose parameters lie within ``_FOLD_REACH_MM`` of an element that folds
+        (``element_turns_deg``) in ``ts`` or folded in an earlier solve of the same fit: crossing parameters
+        elsewhere (a small overhang the surface follows) are left as they are."""
+        ext = ts.extraction
+        for e in np.flatnonzero(element_turns_deg(ts) > FOLD_TURN_DEG):
+            (s0, s1), (t0, t1) = ext.s_bounds[e], ext.t_bounds[e]
+            self.fold_boxes.append((0.5 * (s0 + s1), 0.5 * (s1 - s0) + _FOLD_REACH_MM, t0 - _FOLD_REACH_MM,
+                                    t1 + _FOLD_REACH_MM))
+        near = np.zeros(len(s), bool)
+        for mid, half, low, high in self.fold_boxes:
+            ds = np.abs((s - mid + 0.5 * self.period) % self.period - 0.5 * self.period)
+            near |= (ds <= half) & (t >= low) & (t <= high)
+        return near
 
     def _unwrapped(self, s: np.ndarray, graph: sp.csr_matrix) -> np.ndarray:
         """s (periodic) unwrapped along the edges of ``graph``: each vertex differs from the one it is reached
@@ -237,23 +261,34 @@ class MeshDataHook:
 
     def __call__(self, ts: TSpline, s: np.ndarray, t: np.ndarray
                  ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None]:
+        near = self._near_folds(ts, s, t)
+        if not near.any():
+            return near, None
         tri = self.triangles
-        turned = turned_over_triangles(s, t, tri, self.period)
-        left_out = np.zeros(len(self.points), bool)
-        left_out[tri[turned].ravel()] = True
-        left_out[tri[left_out[tri].any(axis=1)].ravel()] = True  # and their neighbours
-        crossing = int(left_out.sum())
-        sample = ts.evaluate(s, t, order=1)
-        facing = np.einsum("ij,ij->i", np.cross(sample.derivatives[0], sample.derivatives[1]), self.normals) < 0
-        if crossing:
-            extra_crossing = self._harmonic(s, t, left_out)
-        left_out |= facing
         ds = s[tri[:, 1:]] - s[tri[:, :1]]
         ds = (ds + 0.5 * self.period) % self.period - 0.5 * self.period
         dt = t[tri[:, 1:]] - t[tri[:, :1]]
-        area = np.abs(ds[:, 0] * dt[:, 1] - ds[:, 1] * dt[:, 0]) / 2
+        signed = (ds[:, 0] * dt[:, 1] - ds[:, 1] * dt[:, 0]) / 2
+        # about an apex ring the closest points crowd onto the ring and a triangle may span much of the period
+        # in s: its image is no triangle there, and it is never judged
+        polar = np.max(np.abs(np.column_stack([ds, ds[:, 0] - ds[:, 1]])), axis=1) > _POLAR_S_SHARE * self.period
+        polar |= ((t[tri] < _RING_MARGIN_MM) | (t[tri] > self.t_end - _RING_MARGIN_MM)).any(axis=1)
+        turned = (signed * np.sign(np.sum(signed)) < 0) & ~polar
+        left_out = np.zeros(len(self.points), bool)
+        left_out[tri[turned].ravel()] = True
+        left_out[tri[left_out[tri].any(axis=1)].ravel()] = True  # and their neighbours
+        left_out &= near
+        crossing = int(left_out.sum())
+        sample = ts.evaluate(s, t, order=1)
+        facing = np.einsum("ij,ij->i", np.cross(sample.derivatives[0], sample.derivatives[1]), self.normals) < 0
+        facing &= near
+        if crossing:
+            extra_crossing = self._harmonic(s, t, left_out)
+        left_out |= facing
+        area = np.abs(signed)
         ratio = area / np.median(area)
-        stretched = np.flatnonzero((ratio > _STRETCHED_TRIANGLE) & ~left_out[tri].any(axis=1))
+        stretched = np.flatnonzero((ratio > _STRETCHED_TRIANGLE) & ~polar & ~left_out[tri].any(axis=1)
+                                   & near[tri].any(axis=1))
         splits = np.minimum(np.ceil(np.sqrt(ratio[stretched])), _MAX_TRIANGLE_SPLITS).astype(int)
         parts = []
         for k in np.unique(splits):
@@ -380,7 +415,7 @@ def build_tspline_model(
     keep = ~(hole_d | hole_p) & (weights > 0)
     pts, w = vertices[keep], weights[keep]
     index = np.cumsum(keep) - 1
-    hook = MeshDataHook(pts, w, index[triangles[keep[triangles].all(axis=1)]], par.s_period)
+    joined = index[triangles[keep[triangles].all(axis=1)]]  # the triangles joining the kept points
 
     mesh = initial_mesh(par, s_intervals=st.initial_s_intervals, t_spacing_mm=st.initial_t_spacing_mm,
                         apex_rows=st.apex_rows)
@@ -401,7 +436,8 @@ def build_tspline_model(
     if rough:
         log.info("the mesh is rough (noise level %.3f mm): the fit stops at its noise", level)
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
-                       constraints=rings, noise=local, noise_level=rough, progress=progress, data_hook=hook)
+                       constraints=rings, noise=local, noise_level=rough, progress=progress,
+                       data_hook=MeshDataHook(pts, w, joined, par.s_period, par.t_end))
     timings["fit"] = time.perf_counter() - clock
     if not fit.converged:
         staircase = f"; the mesh is a {voxel:.2f} mm voxel staircase" if voxel else ""
@@ -419,7 +455,8 @@ def build_tspline_model(
         tp0, _, _ = skin(contours, par, grid, fairness=fair)
         s1, t1, _ = initial_parameters(tp0, pts)
         tp_fit = fit_adaptive(tp0, pts, w, s=s1, t=t1, tolerances=tol, fairness=fit_fair, mode="global",
-                              constraints=rings, noise=local, noise_level=rough, data_hook=hook)
+                              constraints=rings, noise=local, noise_level=rough,
+                              data_hook=MeshDataHook(pts, w, joined, par.s_period, par.t_end))
         timings["tensor_product"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
