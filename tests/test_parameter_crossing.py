@@ -36,9 +36,25 @@ def _surface(points: np.ndarray, s: np.ndarray, t: np.ndarray) -> TSpline:
     return solve_control_points(blank, s, t, points, fairness=1e-4)
 
 
+def _hook(points, triangles) -> MeshDataHook:
+    """A hook that has seen a fold over the whole cylinder (it acts only about folds)."""
+    hook = MeshDataHook(points, np.ones(len(points)), triangles, float(N), 400.0)
+    hook.fold_boxes.append((N / 2, N, 0.0, 400.0))
+    return hook
+
+
+def test_a_fit_that_never_folded_is_left_alone():
+    points, s, t, triangles = _cylinder()
+    moved = t.copy()
+    moved[3 * N + 5] = T0 + 6.6
+    hook = MeshDataHook(points, np.ones(len(points)), triangles, float(N), 400.0)
+    left_out, extra = hook(_surface(points, s, t), s, moved)
+    assert not left_out.any() and extra is None and not hook.fold_boxes
+
+
 def test_a_point_pushed_past_its_neighbour_is_left_out_and_put_back_between_its_neighbours():
     points, s, t, triangles = _cylinder()
-    hook = MeshDataHook(points, np.ones(len(points)), triangles, float(N), 400.0)
+    hook = _hook(points, triangles)
     ts = _surface(points, s, t)
     left_out, extra = hook(ts, s, t)
     assert not turned_over_triangles(s, t, triangles, float(N)).any()  # across the periodic seam too
@@ -58,7 +74,7 @@ def test_a_point_pushed_past_its_neighbour_is_left_out_and_put_back_between_its_
 
 def test_a_triangle_stretched_over_the_domain_is_sampled_inside():
     points, s, t, triangles = _cylinder()
-    hook = MeshDataHook(points, np.ones(len(points)), triangles, float(N), 400.0)
+    hook = _hook(points, triangles)
     stretched = t.copy()
     stretched[t >= T0 + 6] += 6.0  # a 6 mm gap in t between the rows t = 5 and t = 6: no point maps into it
     left_out, extra = hook(_surface(points, s, t), s, stretched)

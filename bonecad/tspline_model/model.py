@@ -192,10 +192,13 @@ class MeshDataHook:
     near a region's axis (the anterior distal femur, the calcar below the neck). There the closest points
     of a concavity's two walls cross (a triangle's (s, t) image turns over) and whole elements of the
     domain are left with no point (a triangle's image stretches over them); a least-squares fit with a light
-    thin-plate term folds in both. Before each solve, the points whose parameters cross (the corners of the
-    turned-over triangles and their neighbours) and those whose closest point lies on a sheet facing the
-    other way are left out, and every stretched triangle is sampled inside (its facet at the same
-    barycentric parameters), so that no part of the domain is bare.
+    thin-plate term folds in both. Before each solve, within ``_FOLD_REACH_MM`` of every element that folds
+    or folded earlier in the fit: the points whose parameters cross (the corners of the turned-over triangles
+    and their neighbours) are put back at parameters interpolated harmonically from the points about them,
+    the points whose closest point lies on a sheet facing the other way are left out, and every stretched
+    triangle is sampled inside (its facet at the same barycentric parameters), so that no part of the domain
+    is bare. A fit that never folds is left alone (a small overhang whose parameters cross without folding,
+    e.g. at a tibia's fibular facet, is better followed than smoothed over).
     """
 
     def __init__(self, points: np.ndarray, weights: np.ndarray, triangles: np.ndarray, period: float, t_end: float):
