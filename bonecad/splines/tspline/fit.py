@@ -640,10 +640,11 @@ def fit_adaptive(
             if data_hook is not None:
                 left_out, added = data_hook(ts, s, t)
                 ws, extra = np.where(left_out, 0.0, w), [constraints, added]
-            cp_, cs_, ct_, cw_ = (np.vstack([points, *(e[0] for e in extra if e is not None)]),
-                                  *(np.concatenate([x, *(e[k] for e in extra if e is not None)])
-                                    for k, x in ((1, s), (2, t), (3, ws))))
-            ts = solve_control_points(ts, cs_, ct_, cp_, cw_, fairness=fairness)
+            more = [e for e in extra if e is not None]  # each (points, s, t, weights)
+            ts = solve_control_points(ts, np.concatenate([s, *(e[1] for e in more)]),
+                                      np.concatenate([t, *(e[2] for e in more)]),
+                                      np.vstack([points, *(e[0] for e in more)]),
+                                      np.concatenate([ws, *(e[3] for e in more)]), fairness=fairness)
             s, t, dist = project_points(ts, points, s, t, iterations=3 if round_ == 0 else 2)
         stats = fit_stats(ts, dist, w, tol.share_within[1])
         history.append(stats)
