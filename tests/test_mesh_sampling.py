@@ -55,3 +55,17 @@ def test_edge_midpoint_rule_integrates_quadratics_over_the_facets_exactly():
     assert np.isclose(np.sum(weights * points[:, 0] ** 2), exact, rtol=1e-12)
     # the vertex rule does not: it puts all the weight on the corners
     assert not np.isclose(np.sum(vertex_areas(vertices, faces) * vertices[:, 0] ** 2), exact, rtol=1e-3)
+
+
+def test_fit_sample_mesh_joins_the_points_by_triangles_facing_out():
+    from bonecad.mesh.sampling import fit_sample_mesh
+
+    vertices, faces = _sphere()
+    edge = median_edge_mm(vertices, faces)
+    for spacing in (edge * 1.01, edge * 0.6, edge * 0.3):
+        points, weights, triangles = fit_sample_mesh(vertices, faces, spacing)
+        assert np.array_equal(points, fit_samples(vertices, faces, spacing)[0])
+        tri = points[triangles]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        assert (np.einsum("ij,ij->i", normal, tri.mean(axis=1)) > 0).all()  # outwards, as the mesh's faces
+        assert np.array_equal(np.unique(triangles), np.arange(len(points)))  # every point in a triangle

@@ -121,8 +121,18 @@ def fit_samples(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float) -> t
     and gives the midpoints of its edges (``edge_midpoints``, half an edge
     apart). Returns (points (k, 3), area weights (k,) mm^2).
     """
+    points, weights, _ = fit_sample_mesh(vertices, faces, spacing_mm)
+    return points, weights
+
+
+def fit_sample_mesh(vertices: np.ndarray, faces: np.ndarray, spacing_mm: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``fit_samples`` and triangles joining its points (which lie beside which): the mesh's own, or, for
+    edge midpoints, each triangle's middle triangle (its three edge midpoints, the same orientation).
+    Returns (points (k, 3), area weights (k,) mm^2, triangles (m, 3) indices into the points)."""
     if median_edge_mm(vertices, faces) <= spacing_mm:
-        return vertices, vertex_areas(vertices, faces)
+        return vertices, vertex_areas(vertices, faces), faces
     while median_edge_mm(vertices, faces) > 2.0 * spacing_mm:
         vertices, faces = midpoint_subdivision(vertices, faces)
-    return edge_midpoints(vertices, faces)
+    points, weights = edge_midpoints(vertices, faces)
+    return points, weights, _edges(faces)[1]

@@ -25,20 +25,24 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order
+from scipy.sparse.linalg import spsolve
 
 from bonecad.anatomy.frame import AnatomicalFrame
 from bonecad.contours.curves import ContourSet, bone_coordinates
 from bonecad.errors import KernelError
 from bonecad.occ.pickling import ShapePickling
 from bonecad.mesh.bone_mesh import BoneMesh
-from bonecad.mesh.sampling import fit_samples
+from bonecad.mesh.sampling import fit_sample_mesh
 from bonecad.mesh.working import coarser_copy
 from bonecad.settings import TSplineSettings
 from bonecad.splines.tspline import TSpline
 
 from bonecad.tspline_model.caps import ApexCap, build_cap
-from bonecad.splines.tspline.fit import (FitResult, FitStats, FitTolerances, fit_adaptive, initial_parameters,
-                                         local_noise_mm, noise_level_mm)
+from bonecad.splines.folds import FOLD_TURN_DEG
+from bonecad.splines.tspline.fit import (FitResult, FitStats, FitTolerances, element_turns_deg, fit_adaptive,
+                                         initial_parameters, local_noise_mm, noise_level_mm)
 from bonecad.tspline_model.skinning import Parameterisation, initial_mesh, parameterisation, skin
 
 log = logging.getLogger(__name__)
@@ -152,11 +156,18 @@ def fit_points(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings
     """The fit's points in bone coordinates and their area weights (mm, mm^2): the mesh vertices, or
     on a coarse mesh its edge midpoints, which integrate its facets (its vertices are their corners). A dense
     mesh's working copy is simplified further for them, to triangles of about ``fit_copy_edge_mm``."""
+    points, weights, _ = fit_mesh(bone, frame, settings)
+    return points, weights
+
+
+def fit_mesh(bone: BoneMesh, frame: AnatomicalFrame, settings: TSplineSettings
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``fit_points`` and triangles joining them (``mesh.sampling.fit_sample_mesh``)."""
     vertices, faces = bone_coordinates(bone, frame)
     if bone.working is not None:
         vertices, faces = coarser_copy(vertices, faces, settings.fit_copy_edge_mm)
-    points, weights = fit_samples(vertices, faces, settings.fit_point_spacing_mm)
-    return points, excluded_weights(points, weights, bone, frame)
+    points, weights, triangles = fit_sample_mesh(vertices, faces, settings.fit_point_spacing_mm)
+    return points, excluded_weights(points, weights, bone, frame), triangles
 
 
 def excluded_weights(points: np.ndarray, weights: np.ndarray, bone: BoneMesh, frame: AnatomicalFrame) -> np.ndarray:
@@ -169,6 +180,154 @@ def excluded_weights(points: np.ndarray, weights: np.ndarray, bone: BoneMesh, fr
 
     near = cKDTree(frame.to_bone(centres)).query(points, distance_upper_bound=bone.extra["excluded_mm"])[0]
     return np.where(np.isfinite(near), 0.0, weights)
+
+
+#: A mesh triangle whose (s, t) image is larger than this many times the median triangle's spans a part of the
+#: parameter domain its corners leave bare: it is sampled inside as well (issue 45).
+_STRETCHED_TRIANGLE = 4.0
+#: At most this many subdivisions of a stretched triangle's sides (its samples: (k + 1)(k + 2)/2 - 3).
+_MAX_TRIANGLE_SPLITS = 12
+#: A triangle whose corners' s differ by more than this share of the period lies about an apex ring.
+_POLAR_S_SHARE = 0.125
+#: ... or lies within this distance (mm of t) of an apex ring.
+_RING_MARGIN_MM = 8.0
+#: Crossing parameters are put right within this distance (mm of s and t) of a folded element.
+_FOLD_REACH_MM = 5.0
+
+
+class MeshDataHook:
+    """The T-spline fit's ``data_hook`` on a mesh (issue 45, docs/guides/femur-folds.md): the fit's points
+    (n, 3), their area weights (n,) and the ``triangles`` (m, 3) joining them.
+
+    period : s's period; t_end : the t of the proximal apex ring (mm).
+
+    The first parameters are the points' closest points on the skinned surface, which is smooth and coarse:
+    it spans a deep concavity (the femur's trochanteric fossa) and its s-lines crowd where the bone comes
+    near a region's axis (the anterior distal femur, the calcar below the neck). There the closest points
+    of a concavity's two walls cross (a triangle's (s, t) image turns over) and whole elements of the
+    domain are left with no point (a triangle's image stretches over them); a least-squares fit with a light
+    thin-plate term folds in both. Before each solve, within ``_FOLD_REACH_MM`` of every element that folds
+    or folded earlier in the fit: the points whose parameters cross (the corners of the turned-over triangles
+    and their neighbours) are put back at parameters interpolated harmonically from the points about them,
+    the points whose closest point lies on a sheet facing the other way are left out, and every stretched
+    triangle is sampled inside (its facet at the same barycentric parameters), so that no part of the domain
+    is bare. A fit that never folds is left alone (a small overhang whose parameters cross without folding,
+    e.g. at a tibia's fibular facet, is better followed than smoothed over).
+    """
+
+    def __init__(self, points: np.ndarray, weights: np.ndarray, triangles: np.ndarray, period: float, t_end: float):
+        self.points, self.weights, self.triangles, self.period, self.t_end = points, weights, triangles, period, t_end
+        self.fold_boxes: list[tuple[float, float, float, float]] = []  # (s middle, s half width, t low, t high)
+        n = len(points)
+        i, j = triangles[:, [0, 1, 2, 1, 2, 0]].ravel(), triangles[:, [1, 2, 0, 0, 1, 2]].ravel()
+        self.adjacency = sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+        self.adjacency.data[:] = 1.0
+        tri = points[triangles]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        self.areas = 0.5 * np.linalg.norm(cross, axis=1)
+        self.normals = np.zeros_like(points)
+        for k in range(3):
+            np.add.at(self.normals, triangles[:, k], cross)
+
+    def _near_folds(self, ts: TSpline, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(n,) bool: points whose parameters lie within ``_FOLD_REACH_MM`` of an element that folds
+        (``element_turns_deg``) in ``ts`` or folded in an earlier solve of the same fit: crossing parameters
+        elsewhere (a small overhang the surface follows) are left as they are."""
+        ext = ts.extraction
+        for e in np.flatnonzero(element_turns_deg(ts) > FOLD_TURN_DEG):
+            (s0, s1), (t0, t1) = ext.s_bounds[e], ext.t_bounds[e]
+            self.fold_boxes.append((0.5 * (s0 + s1), 0.5 * (s1 - s0) + _FOLD_REACH_MM, t0 - _FOLD_REACH_MM,
+                                    t1 + _FOLD_REACH_MM))
+        near = np.zeros(len(s), bool)
+        for mid, half, low, high in self.fold_boxes:
+            ds = np.abs((s - mid + 0.5 * self.period) % self.period - 0.5 * self.period)
+            near |= (ds <= half) & (t >= low) & (t <= high)
+        return near
+
+    def _unwrapped(self, s: np.ndarray, graph: sp.csr_matrix) -> np.ndarray:
+        """s (periodic) unwrapped along the edges of ``graph``: each vertex differs from the one it is reached
+        from by less than half a period (breadth first from one vertex of each connected patch)."""
+        out = s.copy()
+        done = np.zeros(len(s), bool)
+        for root in range(len(s)):
+            if done[root]:
+                continue
+            order, parent = breadth_first_order(graph, root, directed=False)
+            for v in order[1:]:
+                step = (s[v] - s[parent[v]] + 0.5 * self.period) % self.period - 0.5 * self.period
+                out[v] = out[parent[v]] + step
+            done[order] = True
+        return out
+
+    def _harmonic(self, s: np.ndarray, t: np.ndarray, free: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The ``free`` points with parameters interpolated harmonically (uniform weights) from the
+        points about them, as extra data: (points, s, t, weights)."""
+        adj = self.adjacency
+        near = free | (adj @ free.astype(float) > 0)
+        sub = adj[near][:, near]
+        near_idx = np.flatnonzero(near)
+        s_near = self._unwrapped(s[near_idx], sub)
+        inner, rim = np.flatnonzero(free[near_idx]), np.flatnonzero(~free[near_idx])
+        lap = (sp.diags(np.asarray(sub.sum(axis=1)).ravel()) - sub).tocsr()
+        rows = lap[inner]
+        rhs = -(rows[:, rim] @ np.column_stack([s_near[rim], t[near_idx][rim]]))
+        sol = np.asarray(spsolve(rows[:, inner].tocsc(), rhs)).reshape(-1, 2)
+        idx = near_idx[inner]
+        return self.points[idx], sol[:, 0] % self.period, sol[:, 1], self.weights[idx]
+
+    def __call__(self, ts: TSpline, s: np.ndarray, t: np.ndarray
+                 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None]:
+        near = self._near_folds(ts, s, t)
+        if not near.any():
+            return near, None
+        tri = self.triangles
+        ds = s[tri[:, 1:]] - s[tri[:, :1]]
+        ds = (ds + 0.5 * self.period) % self.period - 0.5 * self.period
+        dt = t[tri[:, 1:]] - t[tri[:, :1]]
+        signed = (ds[:, 0] * dt[:, 1] - ds[:, 1] * dt[:, 0]) / 2
+        # about an apex ring the closest points crowd onto the ring and a triangle may span much of the period
+        # in s: its image is no triangle there, and it is never judged
+        polar = np.max(np.abs(np.column_stack([ds, ds[:, 0] - ds[:, 1]])), axis=1) > _POLAR_S_SHARE * self.period
+        polar |= ((t[tri] < _RING_MARGIN_MM) | (t[tri] > self.t_end - _RING_MARGIN_MM)).any(axis=1)
+        turned = (signed * np.sign(np.sum(signed)) < 0) & ~polar
+        left_out = np.zeros(len(self.points), bool)
+        left_out[tri[turned].ravel()] = True
+        left_out[tri[left_out[tri].any(axis=1)].ravel()] = True  # and their neighbours
+        left_out &= near
+        crossing = int(left_out.sum())
+        sample = ts.evaluate(s, t, order=1)
+        facing = np.einsum("ij,ij->i", np.cross(sample.derivatives[0], sample.derivatives[1]), self.normals) < 0
+        facing &= near
+        if crossing:
+            extra_crossing = self._harmonic(s, t, left_out)
+        left_out |= facing
+        area = np.abs(signed)
+        ratio = area / np.median(area)
+        stretched = np.flatnonzero((ratio > _STRETCHED_TRIANGLE) & ~polar & ~left_out[tri].any(axis=1)
+                                   & near[tri].any(axis=1))
+        splits = np.minimum(np.ceil(np.sqrt(ratio[stretched])), _MAX_TRIANGLE_SPLITS).astype(int)
+        parts = []
+        for k in np.unique(splits):
+            i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
+            corner = ((i == 0) & (j == 0)) | ((i == k) & (j == 0)) | ((i == 0) & (j == k))
+            inner = (i + j <= k) & ~corner
+            bary = np.column_stack([k - i[inner] - j[inner], i[inner], j[inner]]) / k  # (q, 3), corners dropped
+            sel = stretched[splits == k]
+            corners = self.points[tri[sel]]  # (r, 3, 3)
+            p = np.einsum("qc,rcx->rqx", bary, corners).reshape(-1, 3)
+            ps = ((s[tri[sel, 0]][:, None] + ds[sel] @ bary[:, 1:].T) % self.period).ravel()  # (r, q)
+            pt = (t[tri[sel, 0]][:, None] + dt[sel] @ bary[:, 1:].T).ravel()
+            pw = np.repeat(self.areas[sel] / len(bary), len(bary))
+            parts.append((p, ps, pt, pw))
+        log.debug("fit data: %d points left out (%d whose parameters cross, %d facing the other way), %d "
+                  "stretched triangles sampled inside", int(left_out.sum()), crossing, int(facing.sum()),
+                  len(stretched))
+        if crossing:
+            parts.append(extra_crossing)
+        if not parts:
+            return left_out, None
+        return left_out, tuple(np.concatenate([q[k] for q in parts]) for k in range(4))  # type: ignore[return-value]
 
 
 @dataclass(frozen=True)
@@ -265,13 +424,17 @@ def build_tspline_model(
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
-    vertices, weights = fit_points(bone, frame, st)
+    vertices, weights, triangles = fit_mesh(bone, frame, st)
     par = parameterisation(contours)
     radius = apex_hole_radius_mm
     hole_d, hole_p = hole_masks(vertices, frame, radius)
     rings = ring_constraints(contours, par, radius)
     keep = ~(hole_d | hole_p) & (weights > 0)
     pts, w = vertices[keep], weights[keep]
+    index = np.cumsum(keep) - 1
+    # the triangles joining the kept points, for the fit's data hook (MeshDataHook); on a rough mesh, whose noise
+    # turns triangles over everywhere, it does more harm than good (ICL MRI femur: 13 -> 27 folded elements)
+    joined = index[triangles[keep[triangles].all(axis=1)]]
 
     mesh = initial_mesh(par, s_intervals=st.initial_s_intervals, t_spacing_mm=st.initial_t_spacing_mm,
                         apex_rows=st.apex_rows)
@@ -293,7 +456,8 @@ def build_tspline_model(
     if rough:
         log.info("the mesh is rough (noise level %.3f mm): the fit stops at its noise", level)
     fit = fit_adaptive(ts0, pts, w, s=s0, t=t0, tolerances=tol, fairness=fit_fair, mode="local",
-                       constraints=rings, noise=local, noise_level=rough, progress=progress)
+                       constraints=rings, noise=local, noise_level=rough, progress=progress,
+                       data_hook=None if rough else MeshDataHook(pts, w, joined, par.s_period, par.t_end))
     timings["fit"] = time.perf_counter() - clock
     if not fit.converged:
         staircase = f"; the mesh is a {voxel:.2f} mm voxel staircase" if voxel else ""
@@ -311,7 +475,8 @@ def build_tspline_model(
         tp0, _, _ = skin(contours, par, grid, fairness=fair)
         s1, t1, _ = initial_parameters(tp0, pts)
         tp_fit = fit_adaptive(tp0, pts, w, s=s1, t=t1, tolerances=tol, fairness=fit_fair, mode="global",
-                              constraints=rings, noise=local, noise_level=rough)
+                              constraints=rings, noise=local, noise_level=rough,
+                              data_hook=None if rough else MeshDataHook(pts, w, joined, par.s_period, par.t_end))
         timings["tensor_product"] = time.perf_counter() - clock
 
     clock = time.perf_counter()

@@ -168,3 +168,18 @@ def skin(contours: ContourSet, par: Parameterisation, mesh: TMesh, *,
     ts = solve_control_points(blank, data.s, data.t, data.points, fairness=fairness)
     residual = np.linalg.norm(ts.evaluate(data.s, data.t).points - data.points, axis=1)
     return ts, data, residual
+
+
+def turned_over_triangles(s: np.ndarray, t: np.ndarray, faces: np.ndarray, period: float) -> np.ndarray:
+    """(f,) bool: the mesh triangles whose image in the (s, t) domain (mm; s periodic with ``period``) has
+    the orientation opposite to the majority's: where the points' parameters cross.
+
+    A least-squares fit to parameters that cross must turn its surface over there: the fitted elements
+    fold (issue 45; docs/guides/femur-folds.md). Triangles squeezed to no area (a clamped apex ring) are
+    not counted.
+    """
+    ds = s[faces[:, 1:]] - s[faces[:, :1]]
+    ds = (ds + 0.5 * period) % period - 0.5 * period
+    dt = t[faces[:, 1:]] - t[faces[:, :1]]
+    area = ds[:, 0] * dt[:, 1] - ds[:, 1] * dt[:, 0]
+    return area * np.sign(np.sum(area)) < 0

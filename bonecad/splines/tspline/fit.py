@@ -639,6 +639,7 @@ def fit_adaptive(
     noise: np.ndarray | None = None,
     noise_level: float = 0.0,
     progress: Callable[[int, FitStats], None] | None = None,
+    data_hook: Callable[[TSpline, np.ndarray, np.ndarray], tuple[np.ndarray, tuple | None]] | None = None,
 ) -> FitResult:
     """Fit ``ts`` to points, refining until the tolerances hold or the budget is spent.
 
@@ -659,6 +660,10 @@ def fit_adaptive(
         fit stops there, saying so.
     progress : optional function called with (round, its FitStats) after each round (the caller's
         progress bar; at most ``tolerances.max_rounds + 1`` rounds).
+    data_hook : optional function (current surface, s, t) -> (left out (n,) bool, extra data (points (m, 3), s,
+        t, weights) or None), called before each solve: points left out of it (they still count in the
+        statistics) and data added to it, e.g. where the points' parameters cross or leave a part of the
+        domain bare, which would fold the surface (issue 45).
     """
     tol = tolerances
     if mode not in ("local", "global"):
@@ -673,13 +678,15 @@ def fit_adaptive(
     for round_ in range(tol.max_rounds + 1):
         # refinement keeps the surface, so after the first round one correction suffices
         for _ in range(corrections if round_ == 0 else 1):
-            if constraints is None:
-                ts = solve_control_points(ts, s, t, points, w, fairness=fairness)
-            else:
-                cp_, cs_, ct_, cw_ = constraints
-                ts = solve_control_points(ts, np.concatenate([s, cs_]), np.concatenate([t, ct_]),
-                                          np.vstack([points, cp_]), np.concatenate([w, cw_]),
-                                          fairness=fairness)
+            ws, extra = w, [constraints]
+            if data_hook is not None:
+                left_out, added = data_hook(ts, s, t)
+                ws, extra = np.where(left_out, 0.0, w), [constraints, added]
+            more = [e for e in extra if e is not None]  # each (points, s, t, weights)
+            ts = solve_control_points(ts, np.concatenate([s, *(e[1] for e in more)]),
+                                      np.concatenate([t, *(e[2] for e in more)]),
+                                      np.vstack([points, *(e[0] for e in more)]),
+                                      np.concatenate([ws, *(e[3] for e in more)]), fairness=fairness)
             s, t, dist = project_points(ts, points, s, t, iterations=3 if round_ == 0 else 2)
         stats = fit_stats(ts, dist, w, tol.share_within[1])
         history.append(stats)
