@@ -693,8 +693,24 @@ def fit_adaptive(
         log.info("T-spline fit (%s) round %d: %s", mode, round_, stats.to_dict())
         if progress is not None:
             progress(round_, stats)
-        if stats.meets(tol):
+        # with a data hook that repairs folds, a surface that folds is not done: its folded elements are
+        # refined (the hook puts their points right at each solve) until none is left or a limit stops the fit
+        folded = (np.flatnonzero(element_turns_deg(ts) > FOLD_TURN_DEG) if data_hook is not None
+                  else np.zeros(0, dtype=np.int64))
+        if stats.meets(tol) and folded.size == 0:
             return FitResult(ts, s, t, dist, stats, history, True, "tolerances met", _folds(ts))
+        if stats.meets(tol) and round_ < tol.max_rounds:
+            log.info("T-spline fit (%s) round %d: the tolerances hold, but %d elements fold: refining them",
+                     mode, round_, folded.size)
+            new = refine_elements(ts, folded).tspline if mode == "local" else _refine_globally(
+                ts, folded, np.ones((folded.size, 2), dtype=bool))
+            if new.n_control <= tol.max_control_points:
+                ts = new
+                continue
+        if stats.meets(tol):
+            return FitResult(ts, s, t, dist, stats, history, True,
+                             f"tolerances met; {folded.size} elements still fold (round or control-point limit)",
+                             _folds(ts))
         if noise_level > 0 and stats.rms_mm <= noise_level:
             stopped = _noise_stop(stats, dist, noise_level, tol)
             break
