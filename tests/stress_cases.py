@@ -166,3 +166,291 @@ class Case:
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
+
+
+#: every bone mesh of ../shared/data a mesh case is made from (tibia files: their largest body is the truth)
+def bone_files() -> list[str]:
+    """Relative paths of the tibia and femur meshes under ``DATA`` (sorted; [] without the data)."""
+    names = [p.relative_to(DATA).as_posix() for folder in ("tibia", "tibia_pairs", "femur", "femur_pairs")
+             for p in sorted((DATA / folder).glob("*.stl"))]
+    return names
+
+
+#: perturbation kinds on a mesh, and on a CT
+MESH_KINDS = ("noise", "decimate", "defects", "cut", "rigid", "units", "mirror")
+CT_KINDS = ("contact", "ct")
+KINDS = CT_KINDS + MESH_KINDS
+#: contact cases: the moving bones and their gaps (mm; negative: overlapping)
+CONTACT_BONES = ("talus", "femur", "patella", "fibula")
+GAP_RANGE_MM = (-1.0, 1.5)
+#: clinical CT grids: in-plane pixel and slice spacing ranges (mm)
+PIXEL_RANGE_MM = (0.5, 1.0)
+SLICE_RANGE_MM = (0.6, 3.0)
+
+
+def ct_bars(slice_mm: float) -> tuple[float, float]:
+    """(share within 0.25 mm, max mm) a CT's model must meet against its truth (issue 48)."""
+    return (0.99, 1.0) if slice_mm <= 1.0 + 1e-9 else (0.98, 1.5)
+
+
+def make_cases(count: int, seed: int = 0, *, kinds: tuple[str, ...] = KINDS, sources: list[str] | None = None
+               ) -> list[Case]:
+    """``count`` cases, the kinds in turn, each with its own seed (``seed * 100003 + index``) and parameters
+    drawn from it; the same arguments give the same list (and a longer list starts with a shorter one's)."""
+    files = bone_files() if sources is None else sources
+    subjects = [s for s in LEGS if all((DATA / f).is_file() for f in LEGS[s][:4])]
+    cases = []
+    for index in range(count):
+        kind = kinds[index % len(kinds)]
+        case_seed = seed * 100003 + index
+        rng = np.random.default_rng(case_seed)
+        if kind in CT_KINDS:
+            if not subjects:
+                continue
+            source = subjects[int(rng.integers(len(subjects)))]
+            pixel = round(float(rng.uniform(*PIXEL_RANGE_MM)), 2)
+            slice_mm = round(float(rng.uniform(*SLICE_RANGE_MM)), 1)
+            params: dict[str, Any] = {"pixel_mm": pixel, "slice_mm": slice_mm}
+            if kind == "contact":
+                params["bone"] = CONTACT_BONES[int(rng.integers(len(CONTACT_BONES)))]
+                params["gap_mm"] = round(float(rng.uniform(*GAP_RANGE_MM)), 2)
+            else:
+                params["noise_hu"] = round(float(rng.uniform(10.0, 60.0)), 0)
+                params["blur_mm"] = round(float(rng.uniform(0.3, 1.0)), 2)
+                params["tilt_deg"] = round(float(rng.choice([0.0, rng.uniform(5.0, 25.0)])), 1)
+            case = Case(f"{kind}-{source}-{case_seed}", kind, source, case_seed, params, "model",
+                        ct_bars(slice_mm))
+        else:
+            if not files:
+                continue
+            tibias = [f for f in files if "tibia" in f]
+            group = (tibias or files) if rng.random() < 0.5 else ([f for f in files if f not in tibias] or files)
+            source = group[int(rng.integers(len(group)))]
+            params = _mesh_params(kind, rng)
+            expect = {"cut": "model or exit 2", "units": "exit 2" if params.get("flag") == "auto" else "model"}
+            case = Case(f"{kind}-{Path(source).stem}-{case_seed}", kind, source, case_seed, params,
+                        expect.get(kind, "model"), (0.99, 1.0))
+        cases.append(case)
+    return cases
+
+
+def _mesh_params(kind: str, rng: np.random.Generator) -> dict[str, Any]:
+    if kind == "noise":
+        return {"rms_mm": round(float(np.exp(rng.uniform(np.log(0.05), np.log(1.0)))), 3),
+                "wavelength_mm": round(float(rng.uniform(1.0, 10.0)), 1)}
+    if kind == "decimate":
+        return {"how": str(rng.choice(["coarse", "uneven"])), "edge_mm": round(float(rng.uniform(1.5, 4.0)), 1)}
+    if kind == "defects":
+        return {"slivers": int(rng.integers(0, 200)), "holes": int(rng.integers(0, 6)),
+                "flipped_share": round(float(rng.uniform(0.0, 0.1)), 3),
+                "duplicated_share": round(float(rng.uniform(0.0, 0.05)), 3)}
+    if kind == "cut":
+        return {"end": str(rng.choice(["low", "high"])), "cut_mm": round(float(rng.uniform(1.0, 8.0)), 1)}
+    if kind == "rigid":
+        return {"rotation": [round(float(x), 6) for x in _random_rotation(rng).ravel()],
+                "translation_mm": [round(float(x), 2) for x in rng.uniform(-1000.0, 1000.0, 3)]}
+    if kind == "units":
+        return {"unit": str(rng.choice(["cm", "m"])), "flag": str(rng.choice(["auto", "given"]))}
+    if kind == "mirror":
+        return {"axis": int(rng.integers(3))}
+    raise ValueError(f"unknown mesh kind {kind!r}")
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random rotation matrix (QR of a Gaussian matrix, signs fixed, det +1)."""
+    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+    q *= np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+@dataclass(frozen=True)
+class BuiltCase:
+    """A case's input file, the extra command-line arguments it needs, its truth mesh (mm, the input's frame)
+    and what the build measured (the achieved gap, the noisy mesh's own RMS from the truth, ...)."""
+
+    path: Path
+    args: tuple[str, ...]
+    truth_vertices: np.ndarray
+    truth_faces: np.ndarray
+    facts: dict[str, Any]
+    side: str | None = None  # the side a correct frame names (None: not checked)
+
+
+def _bone_mesh(source: str):
+    """The truth bone of a mesh file: its largest body (a tibia file's fibula left out), outward."""
+    import trimesh
+
+    mesh = max(trimesh.load(DATA / source, force="mesh").split(only_watertight=False), key=lambda b: abs(b.volume))
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def _file_side(source: str) -> str | None:
+    stem = Path(source).stem
+    return {"r": "right", "l": "left"}.get(stem.rsplit("_", 1)[-1])
+
+
+def build_case(case: Case, folder: Path) -> BuiltCase:
+    """Write ``case``'s input into ``folder`` (created) and return it with its truth."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if case.kind in CT_KINDS:
+        return _build_ct(case, folder)
+    return _build_mesh(case, folder)
+
+
+def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    import trimesh
+
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+    return path
+
+
+def _build_mesh(case: Case, folder: Path) -> BuiltCase:
+    import trimesh
+
+    rng = np.random.default_rng(case.seed)
+    truth = _bone_mesh(case.source)
+    whole = trimesh.load(DATA / case.source, force="mesh")  # the input keeps the file's other bodies
+    vertices, faces = np.asarray(whole.vertices, dtype=np.float64), np.asarray(whole.faces, dtype=np.int64)
+    tv, tf = np.asarray(truth.vertices, dtype=np.float64), np.asarray(truth.faces, dtype=np.int64)
+    p, args, facts = case.params, [], {}
+    side = _file_side(case.source)
+    if case.kind == "noise":
+        vertices = _smooth_noise(whole, p["rms_mm"], p["wavelength_mm"], rng)
+        facts["input_rms_mm"] = round(float(np.sqrt(np.mean(np.sum((vertices - whole.vertices) ** 2, axis=1)))), 4)
+    elif case.kind == "decimate":
+        vertices, faces = _decimated(whole, p["how"], p["edge_mm"], rng)
+    elif case.kind == "defects":
+        vertices, faces = _defects(vertices, faces, p, rng)
+    elif case.kind == "cut":
+        cut = _cut(whole, p["end"], p["cut_mm"], cap=False)
+        vertices, faces = np.asarray(cut.vertices), np.asarray(cut.faces)
+        capped = max(_cut(truth, p["end"], p["cut_mm"], cap=True).split(only_watertight=False),
+                     key=lambda b: abs(b.volume))
+        tv, tf = np.asarray(capped.vertices), np.asarray(capped.faces)
+    elif case.kind == "rigid":
+        rotation, shift = np.reshape(p["rotation"], (3, 3)), np.asarray(p["translation_mm"])
+        vertices, tv = vertices @ rotation.T + shift, tv @ rotation.T + shift
+    elif case.kind == "units":
+        scale = {"cm": 0.1, "m": 0.001}[p["unit"]]
+        vertices = vertices * scale
+        if p["flag"] == "given":
+            args = ["--units", p["unit"]]
+    elif case.kind == "mirror":
+        flip = np.ones(3)
+        flip[p["axis"]] = -1.0
+        vertices, tv = vertices * flip, tv * flip
+        faces, tf = faces[:, ::-1], tf[:, ::-1]
+        side = {"right": "left", "left": "right"}.get(side or "")
+    path = _write_mesh(folder / f"{case.case_id}.stl", vertices, faces)
+    return BuiltCase(path, tuple(args), tv, tf, facts, side)
+
+
+def _smooth_noise(mesh, rms_mm: float, wavelength_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """``mesh``'s vertices moved along their normals by a smooth random field: 24 plane waves of wavelength
+    ``wavelength_mm`` in random directions and phases, scaled to ``rms_mm`` RMS over the vertices."""
+    directions = rng.standard_normal((24, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    phases = rng.uniform(0.0, 2 * np.pi, 24)
+    k = 2 * np.pi / wavelength_mm
+    field = np.sin(np.asarray(mesh.vertices) @ directions.T * k + phases).sum(axis=1)
+    field *= rms_mm / max(float(np.sqrt(np.mean(field**2))), 1e-12)
+    return np.asarray(mesh.vertices) + np.asarray(mesh.vertex_normals) * field[:, None]
+
+
+def _decimated(mesh, how: str, edge_mm: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Coarse: quadric decimation to about ``edge_mm`` edges; uneven: the part of the mesh on one side of a
+    random plane through it decimated so, the rest subdivided once (edges differing about 4-8 fold)."""
+    import trimesh
+
+    edge = float(np.median(mesh.edges_unique_length))
+    target = int(len(mesh.faces) * min(1.0, (edge / edge_mm) ** 2))
+    coarse = mesh.simplify_quadric_decimation(face_count=max(target, 500))
+    if how == "coarse":
+        return np.asarray(coarse.vertices), np.asarray(coarse.faces)
+    normal = rng.standard_normal(3)
+    normal /= np.linalg.norm(normal)
+    centre = coarse.vertices.mean(axis=0)
+    side = (coarse.triangles_center - centre) @ normal > 0
+    fine = trimesh.Trimesh(*trimesh.remesh.subdivide(coarse.vertices, coarse.faces, face_index=np.flatnonzero(side)),
+                           process=False)
+    fine.merge_vertices()
+    return np.asarray(fine.vertices), np.asarray(fine.faces)
+
+
+def _defects(vertices: np.ndarray, faces: np.ndarray, p: dict[str, Any], rng: np.random.Generator
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Slivers (a face split at a point 0.1 % along an edge), holes (a vertex's fan of faces removed), flipped
+    and duplicated faces."""
+    faces = faces.copy()
+    n = len(faces)
+    # slivers: face (a, b, c) -> (a, m, c) + (m, b, c) with m a hair from a on edge ab (a needle and a normal face)
+    picked = rng.choice(n, size=min(p["slivers"], n), replace=False)
+    new_vertices = vertices[faces[picked, 0]] * 0.999 + vertices[faces[picked, 1]] * 0.001
+    m = len(vertices) + np.arange(len(picked))
+    extra = np.column_stack([m, faces[picked, 1], faces[picked, 2]])
+    faces[picked, 1] = m
+    vertices = np.vstack([vertices, new_vertices])
+    faces = np.vstack([faces, extra])
+    # holes: the faces around a few random vertices removed
+    for centre in rng.choice(len(vertices) - len(picked), size=p["holes"], replace=False):
+        faces = faces[~(faces == centre).any(axis=1)]
+    flip = rng.random(len(faces)) < p["flipped_share"]
+    faces[flip] = faces[flip][:, ::-1]
+    dup = faces[rng.random(len(faces)) < p["duplicated_share"]]
+    return vertices, np.vstack([faces, dup])
+
+
+def _cut(mesh, end: str, cut_mm: float, *, cap: bool):
+    """``mesh`` with ``cut_mm`` taken off its lowest or highest end along its principal axis (open, or capped)."""
+    import trimesh
+
+    centred = mesh.vertices - mesh.vertices.mean(axis=0)
+    axis = np.linalg.svd(centred[:: max(1, len(centred) // 5000)], full_matrices=False)[2][0]
+    heights = np.asarray(mesh.vertices) @ axis
+    if end == "low":
+        return trimesh.intersections.slice_mesh_plane(mesh, axis, axis * (heights.min() + cut_mm), cap=cap)
+    return trimesh.intersections.slice_mesh_plane(mesh, -axis, axis * (heights.max() - cut_mm), cap=cap)
+
+
+def _build_ct(case: Case, folder: Path) -> BuiltCase:
+    """A whole-leg CT (``contact``: one bone moved to the case's joint space) or a knee-to-ankle CT (``ct``:
+    the leg cut 40 mm above the tibia's plateau, with noise, blur and a tilted gantry), NIfTI."""
+    import trimesh
+
+    from bonecad.imaging import mesh_to_ct
+    from bonecad.imaging.volume import CTVolume, write_nifti
+
+    p = case.params
+    bodies = leg_bodies(case.source)
+    facts: dict[str, Any] = {}
+    noise, blur, tilt = p.get("noise_hu", 30.0), p.get("blur_mm", 0.4), p.get("tilt_deg", 0.0)
+    if case.kind == "contact":
+        bodies, gap, area = move_to_gap(bodies, p["bone"], p["gap_mm"])
+        facts.update(gap_mm=round(gap, 3), contact_mm2=round(area, 0))
+        meshes = list(bodies.values())
+    else:
+        top = float(bodies["tibia"].vertices[:, 2].max()) + 40.0
+        meshes = [m if m.vertices[:, 2].max() < top else
+                  trimesh.intersections.slice_mesh_plane(m, [0, 0, -1], [0, 0, top], cap=True)
+                  for m in bodies.values()]
+    mesh = trimesh.util.concatenate(meshes)
+    vertices = np.asarray(mesh.vertices)
+    # a gantry tilted by t about x: slice k is the plane z = k dz + y tan t; image the mesh in the unsheared
+    # grid's frame and give the volume the sheared affine
+    shear = np.eye(3)
+    shear[2, 1] = np.tan(np.radians(tilt))
+    grid_vertices = vertices @ np.linalg.inv(shear).T
+    ct = mesh_to_ct(grid_vertices, np.asarray(mesh.faces), voxel_mm=(p["pixel_mm"], p["pixel_mm"], p["slice_mm"]),
+                    noise_hu=noise, blur_mm=blur, seed=case.seed)
+    affine = ct.affine.copy()
+    affine[:3, :3] = shear @ affine[:3, :3]
+    affine[:3, 3] = shear @ affine[:3, 3]
+    ct = CTVolume(hu=ct.hu, affine=affine, source="")
+    facts["voxels"] = list(ct.shape)
+    path = write_nifti(ct, folder / f"{case.case_id}.nii.gz")
+    tibia = bodies["tibia"]
+    return BuiltCase(path, (), np.asarray(tibia.vertices), np.asarray(tibia.faces), facts, LEGS[case.source][4])
