@@ -7,11 +7,11 @@ arguments; ``build_case(case, folder)`` writes its input (a mesh file or a NIfTI
 
 Kinds (the table's rows):
 
-- ``contact``: a whole leg with one bone moved along the tibia's axis (talus, femur) or towards it across
+- ``contact``: a leg with one bone moved along the tibia's axis (talus, femur) or towards it across
   the axis (fibula; the patella towards the femur) until the narrowest joint space is ``gap_mm`` (1.5 mm
-  down to an overlap of 1 mm), imaged as a CT at a clinical grid;
-- ``ct``: the tibia with its fibula, talus and the femur's end, imaged at a clinical grid (0.5-1 mm pixels,
-  0.6-3 mm slices), with noise, blur and a tilted gantry;
+  down to an overlap of 1 mm), imaged as a knee-to-ankle CT at a clinical grid;
+- ``ct``: the tibia with its fibula, talus, patella and the femur's end (knee to ankle), imaged at a
+  clinical grid (0.5-1 mm pixels, 0.6-3 mm slices), with noise, blur and a tilted gantry;
 - ``noise``: the tibia's mesh displaced along its normals by smooth noise of 0.05-1 mm RMS at 1-10 mm
   wavelengths;
 - ``decimate``: coarse or uneven quadric decimation;
@@ -288,6 +288,21 @@ def _bone_mesh(source: str):
     return mesh
 
 
+def surface_deviation(truth_vertices: np.ndarray, truth_faces: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                      samples: int = 50000, seed: int = 0) -> tuple[float, float, float]:
+    """(share within 0.25 mm, max mm, RMS mm) of the distances from area-uniform samples of the truth's surface
+    to the mesh ``(vertices, faces)``: the metric the benchmark applies to a model, applied to an input."""
+    from bonecad.mesh.closest import TriangleLocator
+
+    rng = np.random.default_rng(seed)
+    tri = truth_vertices[truth_faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    pick = rng.choice(len(tri), samples, p=area / area.sum())
+    points = (tri[pick] * rng.dirichlet(np.ones(3), samples)[:, :, None]).sum(axis=1)
+    distance = TriangleLocator(vertices, faces).distance(points)
+    return float(np.mean(distance <= 0.25)), float(distance.max()), float(np.sqrt(np.mean(distance**2)))
+
+
 def _file_side(source: str) -> str | None:
     stem = Path(source).stem
     return {"r": "right", "l": "left"}.get(stem.rsplit("_", 1)[-1])
@@ -320,7 +335,6 @@ def _build_mesh(case: Case, folder: Path) -> BuiltCase:
     side = _file_side(case.source)
     if case.kind == "noise":
         vertices = _smooth_noise(whole, p["rms_mm"], p["wavelength_mm"], rng)
-        facts["input_rms_mm"] = round(float(np.sqrt(np.mean(np.sum((vertices - whole.vertices) ** 2, axis=1)))), 4)
     elif case.kind == "decimate":
         vertices, faces = _decimated(whole, p["how"], p["edge_mm"], rng)
     elif case.kind == "defects":
@@ -345,6 +359,9 @@ def _build_mesh(case: Case, folder: Path) -> BuiltCase:
         vertices, tv = vertices * flip, tv * flip
         faces, tf = faces[:, ::-1], tf[:, ::-1]
         side = {"right": "left", "left": "right"}.get(side or "")
+    if case.kind in ("noise", "decimate"):  # the rough input's own deviation from the truth, as a model's
+        share, worst, rms = surface_deviation(tv, tf, vertices, faces)
+        facts.update(input_within_025=round(share, 4), input_max_mm=round(worst, 3), input_rms_mm=round(rms, 4))
     path = _write_mesh(folder / f"{case.case_id}.stl", vertices, faces)
     return BuiltCase(path, tuple(args), tv, tf, facts, side)
 
@@ -417,8 +434,8 @@ def _cut(mesh, end: str, cut_mm: float, *, cap: bool):
 
 
 def _build_ct(case: Case, folder: Path) -> BuiltCase:
-    """A whole-leg CT (``contact``: one bone moved to the case's joint space) or a knee-to-ankle CT (``ct``:
-    the leg cut 40 mm above the tibia's plateau, with noise, blur and a tilted gantry), NIfTI."""
+    """A knee-to-ankle CT of a leg (the femur cut 60 mm above the tibia's plateau), NIfTI: ``contact``, one bone
+    moved to the case's joint space first; ``ct``, with the case's noise, blur and gantry tilt."""
     import trimesh
 
     from bonecad.imaging import mesh_to_ct
@@ -431,12 +448,11 @@ def _build_ct(case: Case, folder: Path) -> BuiltCase:
     if case.kind == "contact":
         bodies, gap, area = move_to_gap(bodies, p["bone"], p["gap_mm"])
         facts.update(gap_mm=round(gap, 3), contact_mm2=round(area, 0))
-        meshes = list(bodies.values())
-    else:
-        top = float(bodies["tibia"].vertices[:, 2].max()) + 40.0
-        meshes = [m if m.vertices[:, 2].max() < top else
-                  trimesh.intersections.slice_mesh_plane(m, [0, 0, -1], [0, 0, top], cap=True)
-                  for m in bodies.values()]
+    # a knee-to-ankle field of view: the femur cut 60 mm above the tibia's plateau (its cut capped)
+    top = float(bodies["tibia"].vertices[:, 2].max()) + 60.0
+    meshes = [m if m.vertices[:, 2].max() < top else
+              trimesh.intersections.slice_mesh_plane(m, [0, 0, -1], [0, 0, top], cap=True)
+              for m in bodies.values()]
     mesh = trimesh.util.concatenate(meshes)
     vertices = np.asarray(mesh.vertices)
     # a gantry tilted by t about x: slice k is the plane z = k dz + y tan t; image the mesh in the unsheared
