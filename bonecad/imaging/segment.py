@@ -110,9 +110,9 @@ def segment_bone(
     if parted:
         bodies = _bodies(labels, int(labels.max()), offset, volume, settings)
         tibia, fibulae = _pick_tibia(bodies, path, settings)
-        labels_parted = [lab for lab, _ in parted if lab != tibia.label]
-        separated += tuple(what for lab, what in parted if lab != tibia.label)
-        at_neck += labels_parted
+        others = [b for b in bodies if b.label in parted and b is not tibia]
+        separated += tuple(_parted_name(b, tibia) for b in others)
+        at_neck += [b.label for b in others]
     _check_whole(tibia, offset, volume, path)
 
     # The tibia's box in the volume, padded by 2 voxels (HU beyond the volume: far below the level).
@@ -553,13 +553,13 @@ def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume:
 
 
 def _split_at_marrow(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume: CTVolume, level: float,
-                     settings: ImagingSettings) -> list[tuple[int, str]]:
+                     settings: ImagingSettings) -> list[int]:
     """Part the tibia's body between its marrow cavities, in place in ``labels``, when it holds more than one
     of at least ``settings.split_marrow_cm3``: a bone fused to it across a broad contact (the talus in the
     mortise, the condyles on the plateau, a fibula along the shaft) that shows no neck. Every bone keeps its
     cortex (subchondral plate) between its marrow and the joint, so the joint lies half-way between the two
-    cavities: each voxel of the filled body goes to its nearest cavity. Returns (label, what was parted) of
-    every part (the largest cavity's part keeps the body's label), or [] when the body has one cavity."""
+    cavities: each voxel of the filled body goes to its nearest cavity. Returns the label of every part (the
+    largest cavity's part keeps the body's label, first), or [] when the body has one cavity."""
     region = labels[tibia.slices]
     own = region == tibia.label
     filled = _fill_cross_sections(own, tibia.axis, volume)
@@ -583,7 +583,7 @@ def _split_at_marrow(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volum
     target = filled & ((region == 0) | own)
     first = int(big[np.argmax(sizes[big - 1])])
     total = float(target.sum())
-    parts: list[tuple[int, str]] = []
+    parts: list[int] = []
     next_label = int(labels.max()) + 1
     for cavity in big:
         if cavity == first:
@@ -592,14 +592,22 @@ def _split_at_marrow(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volum
         if float(part.sum()) < settings.fragment_voxel_share * total:
             continue
         region[part] = next_label
-        parts.append((next_label, f"separated a bone of {part.sum() * voxel_mm3 / 1000:.0f} cm3 fused to the tibia "
-                                  "across a broad contact (a joint space the voxels do not resolve), half-way between "
-                                  "the two bones' marrow"))
+        parts.append(next_label)
         next_label += 1
     if parts:
-        parts.insert(0, (tibia.label, ""))
+        parts.insert(0, tibia.label)
         log.info("parted a body of %.0f mm between %d marrow cavities", tibia.length_mm, len(parts))
     return parts
+
+
+def _parted_name(body: _Body, tibia: _Body) -> str:
+    """What a bone parted from the tibia at its marrow is, by where it lies along the tibia: beyond its
+    proximal or distal end (femur, talus), or beside it (fibula)."""
+    up = tibia.axis if tibia.axis[2] > 0 else -tibia.axis
+    height = float((body.centroid - tibia.centroid) @ up)
+    bone = "femur" if height > 0.35 * tibia.length_mm else "talus" if height < -0.35 * tibia.length_mm else "fibula"
+    return (f"separated the {bone} ({body.volume_mm3 / 1000:.0f} cm3), fused to the tibia across a broad contact "
+            "(a joint space the voxels do not resolve), half-way between the two bones' marrow")
 
 
 def _points_down(sign: float, tibia: _Body) -> bool:
