@@ -108,7 +108,9 @@ def test_a_stress_case_reconstructs_within_its_bars(case, tmp_path):
     """Whole `bonecad reconstruct` runs of a few cases, judged as the benchmark judges them."""
     import sys
 
-    sys.path.insert(0, str(DATA.parent))
+    from .conftest import ROOT
+
+    sys.path.insert(0, str(ROOT))
     from benchmarks.stress import run_case
 
     row = run_case(case, str(tmp_path))
