@@ -389,7 +389,7 @@ def _smooth_noise(mesh, rms_mm: float, wavelength_mm: float, rng: np.random.Gene
 
 def _decimated(mesh, how: str, edge_mm: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Coarse: quadric decimation to about ``edge_mm`` edges; uneven: that, then the part of the mesh on one
-    side of a random plane through it subdivided twice (edges 4 times shorter there), conforming (no cracks)."""
+    side of a random plane through it subdivided (edges half as long there), conforming (no cracks)."""
     edge = float(np.median(mesh.edges_unique_length))
     target = int(len(mesh.faces) * min(1.0, (edge / edge_mm) ** 2))
     coarse = mesh.simplify_quadric_decimation(face_count=max(target, 500))
@@ -398,10 +398,8 @@ def _decimated(mesh, how: str, edge_mm: float, rng: np.random.Generator) -> tupl
         return vertices, faces
     normal = rng.standard_normal(3)
     normal /= np.linalg.norm(normal)
-    for _ in range(2):
-        side = (vertices[faces].mean(axis=1) - vertices.mean(axis=0)) @ normal > 0
-        vertices, faces = _refined(vertices, faces, side)
-    return vertices, faces
+    side = (vertices[faces].mean(axis=1) - vertices.mean(axis=0)) @ normal > 0
+    return _refined(vertices, faces, side)
 
 
 def _refined(vertices: np.ndarray, faces: np.ndarray, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
