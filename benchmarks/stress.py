@@ -17,7 +17,7 @@ Every finished case is journalled (OUT/.cases/<case>.json) as it arrives, so a r
 resumes; OUT/stress.csv (one row a case) and OUT/stress.md (by kind) are rewritten at the end.
 
     python benchmarks/stress.py --cases 500 --out DIR [--seed 0] [--workers 2] [--scheduler ADDRESS]
-        [--kinds noise,rigid,...] [--only CASE_ID] [--timeout S] [--keep]
+        [--kinds noise,rigid,...] [--only CASE_ID] [--timeout S] [--table-only] [--keep]
 """
 from __future__ import annotations
 
@@ -198,6 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout", type=float, default=TIMEOUT_S,
                         help="seconds before a run is killed (a run past 120 s never passes; a longer limit lets a "
                              "loaded machine still judge the answer)")
+    parser.add_argument("--table-only", action="store_true",
+                        help="write the tables from the journal's finished cases and run nothing")
     parser.add_argument("--keep", action="store_true", help="keep each case's input and output under OUT/work")
     args = parser.parse_args(argv)
 
@@ -211,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         cases = [c for c in cases if c.case_id in args.only]
     args.out.mkdir(parents=True, exist_ok=True)
     done = journalled(args.out)
-    todo = [c for c in cases if c.case_id not in done]
+    todo = [] if args.table_only else [c for c in cases if c.case_id not in done]
     print(f"{len(cases)} cases, {len(cases) - len(todo)} already done in {args.out}", flush=True)
     work = args.out / "work" if args.keep else Path(tempfile.mkdtemp(prefix="stress-"))
     try:
