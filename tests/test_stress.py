@@ -115,3 +115,29 @@ def test_a_stress_case_reconstructs_within_its_bars(case, tmp_path):
 
     row = run_case(case, str(tmp_path))
     assert row["exit"] != 1 and row["exit"] != "timeout", f"{row['verdict']}: {row.get('reason')} ({_replay(case)})"
+
+
+def test_a_tibia_without_a_malleolus_is_an_input_error_naming_the_file(monkeypatch, phantom):
+    """The anatomy's checks that fail on the input (no malleolus, no tuberosity, no flare) are exit 2, and the
+    error names the bone's file: issue 48's "side is ill-defined" was an internal error (exit 1)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from bonecad.anatomy import frame
+    from bonecad.settings import Settings
+
+    ring = np.array([[np.cos(a), np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, 36, endpoint=False)]) * 10
+    points = np.vstack([ring, ring + [0, 0, 100.0]])  # its lowest part centred on the axis
+    with pytest.raises(InputError, match="malleolus"):
+        frame._medial_direction(points, np.zeros(3), np.array([0, 0, 1.0]), points[:, 2], np.array([0, 1.0, 0]))
+
+    def no_malleolus(bone, **_):
+        frame._medial_direction(points, np.zeros(3), np.array([0, 0, 1.0]), points[:, 2], np.array([0, 1.0, 0]))
+
+    monkeypatch.setattr(frame, "_frame", no_malleolus)
+    settings = Settings.load()
+    with pytest.raises(InputError, match="malleolus") as info:
+        frame.anatomical_frame(replace(phantom, source="leg.stl"), settings=settings.anatomy,
+                               plausible=settings.units)
+    assert info.value.path == "leg.stl"
