@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     done = journalled(args.out)
     todo = [] if args.table_only else [c for c in cases if c.case_id not in done]
-    print(f"{len(cases)} cases, {len(cases) - len(todo)} already done in {args.out}", flush=True)
+    print(f"{len(cases)} cases, {sum(c.case_id in done for c in cases)} already done in {args.out}", flush=True)
     work = args.out / "work" if args.keep else Path(tempfile.mkdtemp(prefix="stress-"))
     try:
         if todo:
