@@ -100,9 +100,15 @@ def test_a_talus_pressed_into_the_mortise_is_parted_from_the_tibia(tmp_path):
     assert share >= 0.985 and worst < 1.6  # TLEM2's own cleft: 1.57 mm at the true joint space
 
 
+#: cases of the benchmark's run that ended in an internal error, kept until fixed (docs/guides/stress.md)
+FOUND = [pytest.param(c, marks=pytest.mark.xfail(strict=True, reason="contour curves: the 30 degree half-plane "
+                                                 "section meets the apex twice (open)"))
+         for c in make_cases(47, 0) if c.case_id == "ct-ICL-46"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("case", [c for c in make_cases(9, SEED, kinds=MESH_KINDS, sources=SMALL)
-                                  if c.kind in ("rigid", "mirror", "defects")] if SMALL else [],
+                                  if c.kind in ("rigid", "mirror", "defects")] + FOUND if SMALL else [],
                          ids=lambda c: c.case_id)
 def test_a_stress_case_reconstructs_within_its_bars(case, tmp_path):
     """Whole `bonecad reconstruct` runs of a few cases, judged as the benchmark judges them."""
