@@ -68,7 +68,8 @@ class ImagingSettings:
     """CT segmentation: the automatic surface level (cortical floor HU, its percentile, the soft-tissue window
     HU, the level's clamp HU), the bodies of the threshold mask (fragment share of the largest body's voxels,
     long share of the longest length, side-by-side overlap and distance shares), the split of touching bones
-    (erosion depth mm, part shares of voxels and length), the thin-cortex growth (voxels), Taubin smoothing
+    (erosion depth mm, part shares of voxels and length; a bone fused across a broad contact: its marrow cavity's
+    least volume, cm^3), the thin-cortex growth (voxels), Taubin smoothing
     (iterations), the spline degree thick slices are interpolated with, and the working voxel (mm) finer scans
     are averaged up to."""
 
@@ -90,6 +91,7 @@ class ImagingSettings:
     joint_gain_hu_per_mm: float
     smoothing_iterations: int
     slice_spline_degree: int
+    split_marrow_cm3: float
 
     def __post_init__(self) -> None:
         if not 1 <= self.slice_spline_degree <= 5:

@@ -238,7 +238,19 @@ def anatomical_frame(
     Region boundaries are heights above the plafond centre (mm): the settings'
     when given (non-zero), else where the metaphyses flare (see ``_region_boundaries``).
     plausible : the whole tibia's length range (mm).
+    Raises InputError, naming the file, when the bone lacks what every tibia has (a malleolus, a tuberosity,
+    flaring ends, an articular surface at each end).
     """
+    try:
+        return _frame(bone, settings=settings, plausible=plausible)
+    except InputError as exc:
+        if exc.path is not None or not bone.source:
+            raise
+        raise InputError(exc.problem, bone.source) from exc
+
+
+def _frame(bone: BoneMesh, *, settings: AnatomySettings, plausible: UnitsSettings) -> AnatomicalFrame:
+    """``anatomical_frame``'s work (its InputErrors may not name the file)."""
     anat = settings
     bone = bone.work  # the shape, in as many triangles as the tolerance needs (``BoneMesh.working``)
     vertices, faces = bone.vertices, bone.faces
@@ -295,9 +307,13 @@ def anatomical_frame(
         level_mm=float((plateau.centre - plafond_centre) @ z),
     )
 
-    default_distal, default_proximal = _region_boundaries(vertices, faces, plafond_centre, z, mech_length, anat)
-    distal_b = settings.distal_boundary_mm or default_distal
-    proximal_b = settings.proximal_boundary_mm or default_proximal
+    if settings.distal_boundary_mm and settings.proximal_boundary_mm:
+        distal_b, proximal_b = settings.distal_boundary_mm, settings.proximal_boundary_mm
+    else:
+        default_distal, default_proximal = _region_boundaries(vertices, faces, plafond_centre, z, mech_length,
+                                                              anat)
+        distal_b = settings.distal_boundary_mm or default_distal
+        proximal_b = settings.proximal_boundary_mm or default_proximal
     h_lo, h_hi = float(h.min()), float(h.max())
     if not h_lo < distal_b < proximal_b < h_hi:
         raise InputError(
@@ -356,7 +372,9 @@ def _plafond_centre(vertices, faces, centre, z, heights, lo, length, search_shar
     search = lo + search_share * length
     facing = (face_h < search) & (normals @ -z > 0.7)
     if areas[facing].sum() <= 0:
-        raise FitError("no distal articular surface found (no distal-facing faces near the distal end)")
+        raise InputError("the tibia's distal end shows no articular surface (no distal-facing faces near it): the "
+                         "end is cut off or another bone is fused to it; give the whole tibia, separated from its "
+                         "talus")
     # Area-weighted median height of the distal-facing surface = the plafond level.
     order = np.argsort(face_h[facing])
     cum = np.cumsum(areas[facing][order])
@@ -382,7 +400,9 @@ def _anterior_direction(vertices, faces, plafond_centre, z, mech_length) -> np.n
     direction = offsets.mean(axis=0)
     norm = np.linalg.norm(direction)
     if norm < 1.0:
-        raise FitError(f"anterior direction is ill-defined (proximal sections lie {norm:.2f} mm from the axis)")
+        raise InputError(f"the tibia's front cannot be told: its proximal sections lie {norm:.2f} mm from the axis "
+                         "(a tibia's tuberosity puts them several mm in front); the body may not be a tibia, or "
+                         "another bone is fused to it; give the whole tibia alone (or --bone femur for a femur)")
     return direction / norm
 
 
@@ -394,7 +414,10 @@ def _medial_direction(vertices, plafond_centre, z, h, anterior) -> np.ndarray:
     d -= (d @ z) * z + (d @ anterior) * anterior
     norm = np.linalg.norm(d)
     if norm < 2.0:
-        raise FitError("side is ill-defined: the medial malleolus does not stand out from the axis")
+        raise InputError(f"the tibia's side cannot be told: the lowest 3 mm of the bone lie {norm:.1f} mm from the "
+                         "axis, where a tibia's medial malleolus stands out (2 mm or more); its distal end is cut "
+                         "off or another bone (the talus) is fused to it; give the whole tibia, separated from its "
+                         "talus")
     return d / norm
 
 
@@ -413,7 +436,9 @@ def _region_boundaries(vertices, faces, origin, z, mech_length, anat) -> tuple[f
     wide_below = np.flatnonzero(areas[:mid] > anat.distal_flare_ratio * narrowest)
     wide_above = np.flatnonzero(areas[mid:] > anat.proximal_flare_ratio * narrowest)
     if len(wide_below) == 0 or len(wide_above) == 0:
-        raise FitError("the metaphyses do not flare: cannot place the region boundaries (pass them explicitly)")
+        raise InputError("the bone's ends do not flare as a tibia's metaphyses do: cannot place the region "
+                         "boundaries; check the input is a whole tibia, or give both boundaries (--distal-boundary and "
+                         "--proximal-boundary)")
     return float(levels[wide_below[-1] + 1]), float(levels[mid + wide_above[0] - 1])
 
 
@@ -441,5 +466,6 @@ def _axis_exits(vertices, faces, origin, z) -> tuple[np.ndarray, np.ndarray]:
     """Points where the mechanical axis leaves the bone, distally and proximally."""
     hits = _ray_hits(vertices, faces, origin, z)
     if len(hits) < 2:
-        raise FitError("the mechanical axis does not pass through the bone")
+        raise InputError("the line from the plafond's centre to the plateau's does not pass through the bone: "
+                         "the shape is not a tibia's (a bent, broken or fused bone?); give the whole tibia alone")
     return origin + hits[0] * z, origin + hits[-1] * z

@@ -71,17 +71,23 @@ def mesh_to_ct(
     sub = max(1, int(round(spacing[2] / min(spacing[0], spacing[1]))))
     fine = spacing / np.array([1.0, 1.0, sub])
     fine_low = low - np.array([0.0, 0.0, 0.5 * (spacing[2] - fine[2])])
-    bone = occupancy(vertices, faces, fine_low, fine, (shape[0] * sub, shape[1], shape[2]), rays=PV_RAYS)
-    if sub > 1:
-        bone = bone.reshape(shape[0], sub, shape[1], shape[2]).mean(axis=1)
     spacing_kji = spacing[::-1]
-
+    # Every body (bone) its own cortex: the marrow share of a voxel is its depth inside its own body, so two
+    # bones in contact (a joint space thinner than a voxel, or overlapping) show both cortices (subchondral
+    # plates) between their marrows, as a CT does, not one marrow running through the joint.
+    bone = np.zeros(shape, dtype=np.float32)
+    marrow = np.zeros(shape, dtype=np.float32)
+    for body_faces in _bodies(faces, len(vertices)):
+        box, occ = _body_occupancy(vertices, body_faces, low, fine_low, spacing, fine, sub, shape)
+        bone[box] += occ
+        # Marrow share: 0 within the cortex, rising to 1 over one voxel (a partial-volume inner boundary, so
+        # a thin cortex has no see-through gaps).
+        depth = _coarse_distance(occ >= 0.5, spacing_kji, inside=True, grid_mm=1.0)
+        np.maximum(marrow[box], np.clip((depth - np.float32(cortex_mm)) / np.float32(spacing.max()), 0.0, 1.0),
+                   out=marrow[box])
+        del depth, occ
+    np.clip(bone, 0.0, 1.0, out=bone)
     solid = bone >= 0.5
-    # Marrow share of each voxel: 0 within the cortex, rising to 1 over one voxel
-    # (a partial-volume inner boundary, so a thin cortex has no see-through gaps).
-    depth = _coarse_distance(solid, spacing_kji, inside=True, grid_mm=1.0)
-    marrow = np.clip((depth - np.float32(cortex_mm)) / np.float32(spacing.max()), 0.0, 1.0)
-    del depth
     # The tissue/air border is far from the bone: a 3 mm grid places it well enough.
     near = _coarse_distance(solid, spacing_kji, inside=False, grid_mm=3.0) <= soft_tissue_mm
     hu = np.where(near, np.float32(SOFT_TISSUE_HU), np.float32(AIR_HU))
@@ -104,6 +110,37 @@ def mesh_to_ct(
     affine[:3, :3] = np.diag(spacing)
     affine[:3, 3] = low
     return CTVolume(hu=hu, affine=affine, source="", missing_slices=missing)
+
+
+def _bodies(faces: np.ndarray, vertex_count: int) -> list[np.ndarray]:
+    """The faces of each connected body of the mesh (bodies sharing no vertex)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows = np.repeat(np.arange(len(faces)), 3)
+    graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (faces.ravel(), rows)), shape=(vertex_count, len(faces)))
+    _, vertex_body = connected_components(graph @ graph.T, directed=False)
+    face_body = vertex_body[faces[:, 0]]
+    order = np.argsort(face_body, kind="stable")
+    return np.split(faces[order], np.flatnonzero(np.diff(face_body[order])) + 1)
+
+
+def _body_occupancy(vertices: np.ndarray, faces: np.ndarray, low: np.ndarray, fine_low: np.ndarray,
+                    spacing: np.ndarray, fine: np.ndarray, sub: int, shape: tuple[int, int, int]
+                    ) -> tuple[tuple[slice, ...], np.ndarray]:
+    """One body's partial-volume occupancy on the part of the grid (``shape``, first voxel centre ``low``)
+    around it: (the part's slices (k, j, i), its occupancy), each slice the mean of ``sub`` thin sub-slices
+    (first centre ``fine_low``)."""
+    used = vertices[np.unique(faces)]
+    first = np.maximum(np.floor((used.min(axis=0) - low) / spacing).astype(np.int64) - 2, 0)
+    last = np.minimum(np.ceil((used.max(axis=0) - low) / spacing).astype(np.int64) + 3, np.array(shape[::-1]))
+    box = tuple(slice(int(a), int(b)) for a, b in zip(first[::-1], last[::-1]))  # (k, j, i)
+    part = tuple(int(b - a) for a, b in zip(first[::-1], last[::-1]))
+    occ = occupancy(vertices, faces, fine_low + first * spacing, fine, (part[0] * sub, part[1], part[2]),
+                    rays=PV_RAYS)
+    if sub > 1:
+        occ = occ.reshape(part[0], sub, part[1], part[2]).mean(axis=1)
+    return box, occ
 
 
 def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -106,6 +106,13 @@ def segment_bone(
         at_neck.append(found[1])
         bodies = _bodies(labels, int(labels.max()), offset, volume, settings)
         tibia, fibulae = _pick_tibia(bodies, path, settings)
+    parted = _split_at_marrow(labels, tibia, offset, volume, level, settings)
+    if parted:
+        bodies = _bodies(labels, int(labels.max()), offset, volume, settings)
+        tibia, fibulae = _pick_tibia(bodies, path, settings)
+        others = [b for b in bodies if b.label in parted and b is not tibia]
+        separated += tuple(_parted_name(b, tibia) for b in others)
+        at_neck += [b.label for b in others]
     _check_whole(tibia, offset, volume, path)
 
     # The tibia's box in the volume, padded by 2 voxels (HU beyond the volume: far below the level).
@@ -543,6 +550,64 @@ def _split_at_neck(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume:
         log.info(what)
         return what, new_label
     return None
+
+
+def _split_at_marrow(labels: np.ndarray, tibia: _Body, offset: np.ndarray, volume: CTVolume, level: float,
+                     settings: ImagingSettings) -> list[int]:
+    """Part the tibia's body between its marrow cavities, in place in ``labels``, when it holds more than one
+    of at least ``settings.split_marrow_cm3``: a bone fused to it across a broad contact (the talus in the
+    mortise, the condyles on the plateau, a fibula along the shaft) that shows no neck. Every bone keeps its
+    cortex (subchondral plate) between its marrow and the joint, so the joint lies half-way between the two
+    cavities: each voxel of the filled body goes to its nearest cavity. Returns the label of every part (the
+    largest cavity's part keeps the body's label, first), or [] when the body has one cavity."""
+    region = labels[tibia.slices]
+    own = region == tibia.label
+    filled = _fill_cross_sections(own, tibia.axis, volume)
+    start = np.array([s.start for s in tibia.slices]) + offset
+    grey = volume.hu[tuple(slice(a, a + n) for a, n in zip(start, filled.shape))]
+    # marrow: dark voxels inside the filled body, one voxel in from it (no thin paths through a joint space)
+    marrow = ndimage.binary_erosion(filled & (grey < level))
+    cavities, count = ndimage.label(marrow)
+    if count < 2:
+        return []
+    voxel_mm3 = abs(float(np.linalg.det(volume.affine[:3, :3])))
+    sizes = np.bincount(cavities.ravel())[1:] * voxel_mm3
+    big = np.flatnonzero(sizes >= 1000.0 * settings.split_marrow_cm3) + 1
+    if len(big) < 2:
+        return []
+    markers = np.where(np.isin(cavities, big), cavities, 0)
+    del cavities, marrow
+    _, index = ndimage.distance_transform_edt(markers == 0, sampling=volume.spacing_mm[::-1], return_indices=True)
+    nearest = markers[tuple(index)]
+    del index
+    target = filled & ((region == 0) | own)
+    first = int(big[np.argmax(sizes[big - 1])])
+    total = float(target.sum())
+    parts: list[int] = []
+    next_label = int(labels.max()) + 1
+    for cavity in big:
+        if cavity == first:
+            continue
+        part = target & (nearest == cavity)
+        if float(part.sum()) < settings.fragment_voxel_share * total:
+            continue
+        region[part] = next_label
+        parts.append(next_label)
+        next_label += 1
+    if parts:
+        parts.insert(0, tibia.label)
+        log.info("parted a body of %.0f mm between %d marrow cavities", tibia.length_mm, len(parts))
+    return parts
+
+
+def _parted_name(body: _Body, tibia: _Body) -> str:
+    """What a bone parted from the tibia at its marrow is, by where it lies along the tibia: beyond its
+    proximal or distal end (femur, talus), or beside it (fibula)."""
+    up = tibia.axis if tibia.axis[2] > 0 else -tibia.axis
+    height = float((body.centroid - tibia.centroid) @ up)
+    bone = "femur" if height > 0.35 * tibia.length_mm else "talus" if height < -0.35 * tibia.length_mm else "fibula"
+    return (f"separated the {bone} ({body.volume_mm3 / 1000:.0f} cm3), fused to the tibia across a broad contact "
+            "(a joint space the voxels do not resolve), half-way between the two bones' marrow")
 
 
 def _points_down(sign: float, tibia: _Body) -> bool:
