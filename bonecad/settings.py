@@ -35,9 +35,11 @@ Alignment = Literal["none", "rigid", "similarity"]
 
 @dataclass(frozen=True)
 class UnitsSettings:
-    """Plausible tibia length (mm, long axis): outside it the mesh is in other units or not a whole tibia."""
+    """Plausible lengths (mm, long axis) of a tibia and a femur: the tibia's tells the units; beyond both
+    one body is two bones fused; they are sanity checks, not a bone's identity (the femur's head is)."""
 
     tibia_length_mm: tuple[float, float]
+    femur_length_mm: tuple[float, float]
 
 
 @dataclass(frozen=True)
@@ -139,7 +141,6 @@ class FemurSettings:
     and region boundaries as [anatomy]'s; the epicondyles' search radius about the condylar axis and the
     cap of their tops (mm)."""
 
-    length_mm: tuple[float, float]
     head_search_share: float
     head_radius_mm: tuple[float, float]
     head_vote_bin_mm: float

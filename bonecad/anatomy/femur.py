@@ -129,15 +129,10 @@ def femur_frame(bone: BoneMesh, *, settings: FemurSettings) -> AnatomicalFrame:
     above the knee centre (mm): the settings' when non-zero, else where the metaphyses flare.
     """
     head, to_knee, length = head_at_narrow_end(bone, settings)
-    lo_len, hi_len = settings.length_mm
     if head is None:
         raise InputError(f"no femoral head: no sphere of {settings.head_radius_mm[0]:.0f}-"
                          f"{settings.head_radius_mm[1]:.0f} mm radius at the narrow end of this "
                          f"{length:.0f} mm bone", bone.source or None)
-    if not lo_len <= length <= hi_len:
-        raise InputError(f"the bone is {length:.1f} mm long; a whole femur is {lo_len:.0f}-{hi_len:.0f} mm "
-                         "(a partial bone, another bone, or a mesh in other units: see --units)",
-                         bone.source or None)
     work = bone.work
     vertices, faces = work.vertices, work.faces
     z = -to_knee

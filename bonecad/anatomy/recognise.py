@@ -13,12 +13,8 @@ def recognise_bone(bone: BoneMesh, *, femur: FemurSettings, plausible: UnitsSett
     InputError naming what the mesh looks like when it is neither (for "auto"), or when it is clearly the
     other bone (a bone asked for but matching neither profile is taken as asked: that is what --bone is for)."""
     head, _, length = head_at_narrow_end(bone, femur)
-    lo_f, hi_f = femur.length_mm
+    lo_f, hi_f = plausible.femur_length_mm
     lo_t, hi_t = plausible.tibia_length_mm
-    if length > max(hi_f, hi_t):
-        raise InputError(f"one body {length:.0f} mm long, longer than any tibia ({lo_t:.0f}-{hi_t:.0f} mm) or femur "
-                         f"({lo_f:.0f}-{hi_f:.0f} mm): two bones seem fused at the knee; separate them in the "
-                         "segmentation (bonecad models one bone)", bone.source or None)
     found = ("femur" if head is not None and lo_f <= length <= hi_f
              else "tibia" if head is None and lo_t <= length <= hi_t else None)
     if asked != "auto" and found in (None, asked):

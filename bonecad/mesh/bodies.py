@@ -138,14 +138,21 @@ def neck_index(areas: np.ndarray, ratio: float) -> int | None:
     return int(np.argmin(np.where(neck, areas, np.inf)))
 
 
-def check_not_fused(vertices: np.ndarray, faces: np.ndarray, settings: MeshSettings, source: Path | None) -> None:
-    """InputError naming the neighbour when the kept body holds a second bone: a fibula (a second section
-    loop along much of its length) or a bone at one end (a neck near the end). A body longer than any single
-    bone is named by the recognition (``anatomy.recognise``), which knows the femur's head: length alone
-    does not tell a long femur from a tibia fused to its femur."""
+def check_not_fused(vertices: np.ndarray, faces: np.ndarray, settings: MeshSettings, longest_mm: float,
+                    source: Path | None) -> None:
+    """InputError naming the neighbour when the kept body holds a second bone: a femur (longer than any
+    single bone, ``longest_mm``: the longer of the tibia's and the femur's plausible lengths; a long femur
+    is no fused tibia), a fibula (a second section loop along much of its length) or a bone at one end (a
+    neck near the end)."""
     centre = vertices.mean(axis=0)
     shape = body_shape(vertices, 0.0, centre)
     advice = "; separate them in the segmentation (bonecad models one bone)"
+    if shape.length > longest_mm:
+        raise InputError(
+            f"one body {shape.length:.0f} mm long, longer than any tibia or femur (at most {longest_mm:.0f} mm): "
+            f"the tibia seems fused to its femur at the knee{advice}",
+            source,
+        )
     up = proximal_direction(vertices, faces, centre, shape.axis)
     heights = (vertices - centre) @ up
     bottom, top = float(heights.min()), float(heights.max())

@@ -311,6 +311,11 @@ def _detect_scale(length: float, width: float, units: Units, path: Path | None,
     )
 
 
+def longest_bone_mm(plausible: UnitsSettings) -> float:
+    """The longest single bone (mm): the longer of the tibia's and the femur's plausible lengths."""
+    return float(max(plausible.tibia_length_mm[1], plausible.femur_length_mm[1]))
+
+
 def _scaled(vertices: np.ndarray, scale: float) -> np.ndarray:
     """``vertices * scale``, or ``vertices`` themselves in mm already (no copy of a dense mesh)."""
     return vertices if scale == 1.0 else vertices * scale
@@ -414,7 +419,7 @@ def prepare_bone(
             "--template contralateral OTHER_SIDE.stl --out DIR` (or `bonecad reconstruct --reduce --template ...`)",
             path,
         )
-    check_not_fused(work.vertices, work.faces, settings, path)
+    check_not_fused(work.vertices, work.faces, settings, longest_bone_mm(plausible), path)
     dropped = infos[1:]
     if dropped:
         repairs.append("dropped " + ", ".join(

@@ -141,6 +141,7 @@ def segment_ct(path: str | Path, settings: Settings, *,
     from bonecad.imaging import segment_bone
     from bonecad.imaging.volume import read_volume
     from bonecad.mesh.bodies import check_not_fused
+    from bonecad.mesh.intake import longest_bone_mm
 
     log.info("reading CT volume %s", path)
     volume = read_volume(path)
@@ -149,7 +150,7 @@ def segment_ct(path: str | Path, settings: Settings, *,
     bone = working_copy(segmented, settings.mesh)
     for repair in bone.repairs:
         log.info("%s", repair)
-    check_not_fused(bone.work.vertices, bone.work.faces, settings.mesh, Path(path))
+    check_not_fused(bone.work.vertices, bone.work.faces, settings.mesh, longest_bone_mm(settings.units), Path(path))
     return bone
 
 
