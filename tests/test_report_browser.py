@@ -113,7 +113,7 @@ def test_the_3d_view_draws_the_models(report_html, tmp_path):
     from PIL import Image
 
     shot = tmp_path / "report.png"
-    run = chromium(f"--screenshot={shot}", "--window-size=1400,2600", report_html.as_uri())
+    run = chromium(f"--screenshot={shot}", "--window-size=1400,3600", report_html.as_uri())
     assert shot.is_file(), run.stderr[-2000:]
     rgb = np.asarray(Image.open(shot).convert("RGB")).astype(int)
     border = np.abs(rgb - BORDER_RGB).max(axis=2) <= 2

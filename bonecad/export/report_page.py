@@ -270,7 +270,8 @@ def render_html(report: dict[str, Any], figures: dict[str, dict[str, Path]], vie
     if tol:
         parts.append(f"<p>Tolerances of this run ([tspline]): at least {100 * tol['share']:g} % of the surface within "
                      f"{tol['within_mm']:g} mm, no point beyond {tol['max_deviation_mm']:g} mm, RMS at most "
-                     f"{tol['rms_mm']:g} mm; measured from the mesh to each model.</p>")
+                     f"{tol['rms_mm']:g} mm; measured both ways (from the mesh to each model and from each model "
+                     "to the mesh), and no model may fold.</p>")
     parts.append("<div class='cards'>" + _input_section(report["input"]))
     parts += [_model_card(name, card) for name, card in report.get("summary", {}).items()]
     parts.append("</div>")
