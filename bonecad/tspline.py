@@ -9,34 +9,8 @@ model as one closed Fusion cage.
 """
 from __future__ import annotations
 
-from bonecad.splines.tspline import (BezierExtraction, KnotSegment, Refinement, Removal, SuitabilityReport,
-                                     TJunctions, TMesh, TSMDocument, TSMError, TSpline, check_suitability, extract,
-                                     from_dict, insert_segments, load, open_region, read_tspline, refine_elements,
-                                     remove_segments, save, t_junctions, to_dict, tsm, write_tspline)
+from bonecad.splines.tspline import *  # noqa: F403 (the kernel's public names, listed once there)
+from bonecad.splines.tspline import __all__ as _kernel_names
+from bonecad.splines.tspline import tsm
 
-__all__ = [
-    "BezierExtraction",
-    "KnotSegment",
-    "Refinement",
-    "Removal",
-    "SuitabilityReport",
-    "TJunctions",
-    "TMesh",
-    "TSMDocument",
-    "TSMError",
-    "TSpline",
-    "check_suitability",
-    "extract",
-    "from_dict",
-    "insert_segments",
-    "load",
-    "open_region",
-    "read_tspline",
-    "refine_elements",
-    "remove_segments",
-    "save",
-    "to_dict",
-    "t_junctions",
-    "tsm",
-    "write_tspline",
-]
+__all__ = [*_kernel_names, "tsm"]

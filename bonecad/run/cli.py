@@ -52,6 +52,18 @@ def _add_logging(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
 
 
+def _add_region(p: argparse.ArgumentParser) -> None:
+    """SOURCE, --out and the region flags that ``patch`` and ``plate`` share."""
+    p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--region", help="a named region on the bone: " + "; ".join(
+        f"{b}: {', '.join(load_profile(b).patch_regions)}" for b in BONES))
+    p.add_argument("--height", type=float, nargs=2, metavar=("FROM", "TO"),
+                   help="heights, mm above the frame's origin (the plafond centre of a tibia)")
+    p.add_argument("--angle", type=float, nargs=2, metavar=("FROM", "TO"), help="angles, degrees from lateral")
+    p.add_argument("--mesh", type=Path, help="the mesh of a reconstruction folder, if it has moved")
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, help="TOML file overriding defaults (angles, counts, tolerances)")
     p.add_argument("--units", choices=["auto", "mm", "cm", "m"], default="auto",
@@ -162,14 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
                        f"[patch] settings on the bone, or a height range (mm above {ORIGINS}) and an angle range "
                        "(degrees from lateral towards anterior: 90 anterior, 180 medial).",
                        epilog="example: bonecad patch out --region anteromedial_distal_tibia --out plate-out")
-    p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--region", help="a named region on the bone: " + "; ".join(
-        f"{b}: {', '.join(load_profile(b).patch_regions)}" for b in BONES))
-    p.add_argument("--height", type=float, nargs=2, metavar=("FROM", "TO"),
-                   help="heights, mm above the frame's origin (the plafond centre of a tibia)")
-    p.add_argument("--angle", type=float, nargs=2, metavar=("FROM", "TO"), help="angles, degrees from lateral")
-    p.add_argument("--mesh", type=Path, help="the mesh of a reconstruction folder, if it has moved")
+    _add_region(p)
     _add_common(p)
 
     p = sub.add_parser("plate", help="a fixation plate on a region of the bone -> plate.step/.iges/.stl, screws",
@@ -181,14 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "and plate.png into --out ([plate] settings; the flags override them).",
                        epilog="example: bonecad plate out --region anteromedial_distal_tibia --screw-direction "
                        "transverse --out plate-out")
-    p.add_argument("source", type=Path, help="a `bonecad reconstruct` output folder, or a mesh file or CT volume")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--region", help="a named region on the bone: " + "; ".join(
-        f"{b}: {', '.join(load_profile(b).patch_regions)}" for b in BONES))
-    p.add_argument("--height", type=float, nargs=2, metavar=("FROM", "TO"),
-                   help="heights, mm above the frame's origin (the plafond centre of a tibia)")
-    p.add_argument("--angle", type=float, nargs=2, metavar=("FROM", "TO"), help="angles, degrees from lateral")
-    p.add_argument("--mesh", type=Path, help="the mesh of a reconstruction folder, if it has moved")
+    _add_region(p)
     p.add_argument("--width", type=float, nargs="+", metavar="MM",
                    help="plate width (mm); two values: distal and proximal end (tapered)")
     for flag, what in (("thickness", "plate thickness (mm)"), ("gap", "gap to the bone (mm, 0 = contact)"),
